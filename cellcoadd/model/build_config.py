@@ -1,0 +1,47 @@
+"""Configuration of a coadd build, stored with every coadd it produced."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+
+class BuildConfig(BaseModel):
+    """How cells are coadded (frozen; written into every output file).
+
+    Parameters
+    ----------
+    n_noise : int
+        Number K of noise realizations per cell.
+    psf_size : int
+        Side of the odd, square coadd PSF stamp, coadd pixels.
+    kernel : "lanczos3"
+        Resampling kernel (normalised Lanczos-3; the only one offered).
+    max_mask_fraction : float
+        An exposure whose masked fraction inside the cell's outer box exceeds this is
+        rejected for the cell (reason ``"masked_fraction"``).
+    bad_mask_bits : list of str
+        Names of the exposure mask bits that count as masked (their pixels get no weight).
+    zero_point : float
+        Common photometric zero point, mag, to which every input is scaled.
+    mapping_tolerance : float
+        Maximum error, pixels, allowed of the approximated cell -> exposure pixel mapping.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    n_noise: int = Field(3, ge=0, le=64)
+    psf_size: int = Field(35, ge=3)
+    kernel: Literal["lanczos3"] = "lanczos3"
+    max_mask_fraction: float = Field(0.1, ge=0.0, le=1.0)
+    bad_mask_bits: tuple[str, ...] = ("BAD", "SAT", "CR", "NO_DATA", "EDGE")
+    zero_point: float = Field(30.0, gt=-50.0, lt=100.0, description="mag")
+    mapping_tolerance: float = Field(1e-3, gt=0.0, le=0.1, description="pixels")
+
+    @field_validator("psf_size")
+    @classmethod
+    def _odd(cls, size: int) -> int:
+        if size % 2 == 0:
+            raise ValueError(f"psf_size must be odd so the stamp has a central pixel, got {size}")
+        return size
