@@ -58,7 +58,9 @@ class SkyMapConfig(BaseModel):
                 f"cells_per_patch ({self.cells_per_patch})"
             )
         if self.tract_pixels > 2_000_000:
-            raise ValueError(f"a tract of {self.tract_pixels} pixels on a side is implausibly large")
+            raise ValueError(
+                f"a tract of {self.tract_pixels} pixels on a side is implausibly large"
+            )
         return self
 
     @property

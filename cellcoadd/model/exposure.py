@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Union
 
 import galsim
 import numpy as np
@@ -28,7 +27,7 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.model.maskbits import MaskBits
 
-PsfLike = Union[galsim.GSObject, Callable[[float, float], galsim.GSObject], galsim.Image]
+PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
 
 
 class ExposureError(ValueError):
@@ -86,7 +85,9 @@ class Exposure:
         if not isinstance(self.wcs, WCS) or not self.wcs.has_celestial:
             raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
         if not np.isfinite(self.zero_point) or not -50.0 < self.zero_point < 100.0:
-            raise ExposureError(f"{name}: zero_point {self.zero_point} is not a plausible magnitude")
+            raise ExposureError(
+                f"{name}: zero_point {self.zero_point} is not a plausible magnitude"
+            )
         if not isinstance(self.band, str) or not self.band:
             raise ExposureError(f"{name}: band must be a non-empty string")
         if self.mask is None:
