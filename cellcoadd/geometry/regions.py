@@ -27,26 +27,38 @@ class InnerRegion:
         raise NotImplementedError
 
 
+def ra_slice_index(ra: np.ndarray, n_ra: int) -> np.ndarray:
+    """Index of the half-open RA range ``[j, j + 1) * 360 / n_ra`` holding ``ra`` (deg)."""
+    ra = np.mod(np.asarray(ra, dtype=float), 360.0)
+    return np.minimum(np.floor(ra * (n_ra / 360.0)).astype(np.int64), n_ra - 1)
+
+
 @dataclass(frozen=True)
 class RingRegion(InnerRegion):
-    """``dec_min <= dec < dec_max`` and ``ra_min <= ra < ra_min + ra_width`` (deg, RA mod 360).
+    """``dec_min <= dec < dec_max`` and RA in slice ``ra_index`` of ``n_ra`` equal slices.
 
-    The north polar cap has ``dec_max > 90`` so that dec = 90 is included.
+    The north polar cap has ``dec_max > 90`` so that dec = 90 is included. RA slices are
+    found with :func:`ra_slice_index`, the same computation the sky map's lookup uses, so
+    ownership is decided identically everywhere (no rounding disagreement at RA = 0/360).
     """
 
     dec_min: float
     dec_max: float
-    ra_min: float = 0.0
-    ra_width: float = 360.0
+    n_ra: int = 1
+    ra_index: int = 0
+
+    @property
+    def ra_width(self) -> float:
+        return 360.0 / self.n_ra
+
+    @property
+    def ra_min(self) -> float:
+        return self.ra_index * self.ra_width
 
     def contains(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
-        ra = np.mod(np.asarray(ra, dtype=float), 360.0)
         dec = np.asarray(dec, dtype=float)
         in_dec = (dec >= self.dec_min) & (dec < self.dec_max)
-        if self.ra_width >= 360.0:
-            return in_dec
-        offset = np.mod(ra - self.ra_min, 360.0)
-        return in_dec & (offset < self.ra_width)
+        return in_dec & (ra_slice_index(ra, self.n_ra) == self.ra_index)
 
 
 @dataclass(frozen=True)

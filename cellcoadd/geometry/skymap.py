@@ -10,7 +10,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
 from cellcoadd.geometry.config import SkyMapConfig
-from cellcoadd.geometry.regions import NearestCenterRegion, RingRegion, nearest_center
+from cellcoadd.geometry.regions import (
+    NearestCenterRegion,
+    RingRegion,
+    nearest_center,
+    ra_slice_index,
+)
 from cellcoadd.geometry.tract import Tract
 
 LOCATION_DTYPE = np.dtype(
@@ -115,7 +120,7 @@ class SkyMap:
             rings.append((len(tracts), dec_min, dec_max, n_ra))
             width = 360.0 / n_ra
             for j in range(n_ra):
-                region = RingRegion(dec_min, dec_max, j * width, width)
+                region = RingRegion(dec_min, dec_max, n_ra, j)
                 center = ((j + 0.5) * width % 360.0, dec_center)
                 tracts.append(Tract(len(tracts), center, config, region))
         skymap = cls(spec, tracts, rings)
@@ -198,9 +203,7 @@ class SkyMap:
         ring_n_ra = np.array([r[3] for r in self._rings])
         ring = np.searchsorted(ring_dec_min, dec, side="right") - 1
         ring = np.clip(ring, 0, len(self._rings) - 1)
-        n_ra = ring_n_ra[ring]
-        ra_index = np.minimum(np.floor(ra / (360.0 / n_ra)).astype(np.int64), n_ra - 1)
-        return ring_starts[ring] + ra_index
+        return ring_starts[ring] + ra_slice_index(ra, ring_n_ra[ring])
 
     def locate(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """The unique tract, patch and cell whose inner regions hold each sky position.
