@@ -4,6 +4,7 @@ The public API is re-exported here; see ``docs/`` for the tutorial and conventio
 """
 
 from cellcoadd._version import __version__
+from cellcoadd.build import CellBuildError, build_cell, build_patch
 from cellcoadd.geometry import (
     Box,
     Cell,
@@ -24,6 +25,7 @@ __all__ = [
     "Box",
     "BuildConfig",
     "Cell",
+    "CellBuildError",
     "Exposure",
     "ExposureError",
     "MaskBits",
@@ -32,6 +34,8 @@ __all__ = [
     "SkyMapConfig",
     "Tract",
     "__version__",
+    "build_cell",
+    "build_patch",
     "flag_unique",
     "plot_patch_layout",
     "trim_to_cell",

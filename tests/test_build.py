@@ -58,29 +58,47 @@ def test_star_at_cell_centre_equals_the_psf(tract):
     assert np.abs(star - coadd.psf).max() < 1e-4 * coadd.psf.max()
 
 
-def test_star_off_centre_equals_the_shifted_psf(tract):
+def test_star_off_centre_equals_the_psf_drawn_there(tract):
+    """A star a few pixels off centre matches the coadd PSF evaluated at its position.
+
+    The PSF at another position is the coadd PSF of a cell shifted there (the same tract
+    pixels, hence the same resampling phases). Against the PSF at the cell centre the
+    agreement is limited by Lanczos-3's phase-dependent interpolation error (its weights
+    move the first moment by up to ~0.02 px), a few 1e-3 of the peak: checked below.
+    """
+    from dataclasses import replace
+
     cell = tract.cell(1, 1)
     shift = (3, -2)  # coadd pixels
     cx, cy = cell.center
     ra, dec = tract.pixel_to_sky(cx + shift[0], cy + shift[1])
-    ra_c, dec_c = cell.center_sky
     star = [(ra[0], dec[0], galsim.DeltaFunction())]
-    coadd = build_cell(cell, _exposures((ra_c, dec_c), star), BUILD)
+    exposures = _exposures(cell.center_sky, star)
+    coadd = build_cell(cell, exposures, BUILD)
+    moved = replace(
+        cell,
+        inner_bbox=cell.inner_bbox.shifted(*shift),
+        outer_bbox=cell.outer_bbox.shifted(*shift),
+    )
+    psf_there = build_cell(moved, exposures, BUILD).psf
     ny, nx = coadd.image.shape
     got = _stamp(coadd.image.astype(float), (nx // 2 + shift[0], ny // 2 + shift[1]), 25)
     got = got / got.sum()
-    # the PSF varies only through the local WCS over 3 pixels: agreement to 1e-3 of peak
-    assert np.abs(got - coadd.psf).max() < 1e-3 * coadd.psf.max()
+    assert np.abs(got - psf_there).max() < 1e-4 * psf_there.max()
+    assert np.abs(got - coadd.psf).max() < 1e-2 * coadd.psf.max()
 
 
 def test_constant_sky_stays_constant(tract):
+    """Constant sky per exposure pixel (linear WCSs: constant on the sky) stays constant."""
     cell = tract.cell(0, 0)
-    coadd = build_cell(cell, _exposures(cell.center_sky, sky=7.0), BUILD)
-    # surface brightness per exposure pixel becomes per coadd pixel: scaled by area ratio
-    expected = coadd.image.mean()
+    exposures = _exposures(cell.center_sky, sky=7.0)[:3]  # the SIP one varies on the sky
+    coadd = build_cell(cell, exposures, BUILD)
+    expected = coadd.image.astype(float).mean()
     assert np.abs(coadd.image / expected - 1).max() < 1e-6
-    area_weights = [(0.2 / v["pixel_scale"]) ** 2 for v in VARIANTS]
-    assert expected == pytest.approx(7.0 * np.mean(area_weights), rel=0.02)  # SIP/shear: ~%
+    # per exposure pixel -> per coadd pixel: scaled by the pixel-area ratio
+    area_ratios = [(0.2 / v["pixel_scale"]) ** 2 for v in VARIANTS[:3]]
+    weights = [1.0 / e.background_variance for e in exposures]
+    assert expected == pytest.approx(7.0 * np.average(area_ratios, weights=weights), rel=1e-6)
 
 
 def test_galaxy_flux_is_conserved_across_pixel_scales(tract):
@@ -196,20 +214,59 @@ def test_same_seed_same_arrays_and_different_seed_differs(tract):
     assert not np.array_equal(a.noise, c.noise)
 
 
-def test_patch_identical_for_any_number_of_workers(tract):
-    patch = tract.patch(0, 0)
+@pytest.fixture(scope="module")
+def patch_inputs(tract):
     center = tract.pixel_to_sky([39.5], [39.5])
     exposures = [
-        make_exposure((float(center[0][0]), float(center[1][0])), shape=(260, 260), visit=i,
-                      noise_sigma=1.0, seed=i, **{k: v for k, v in VARIANTS[i].items() if k != "psf"})
+        make_exposure(
+            (float(center[0][0]), float(center[1][0])), shape=(260, 260), visit=i,
+            noise_sigma=1.0, seed=i, **{k: v for k, v in VARIANTS[i].items() if k != "psf"},
+        )
         for i in range(2)
     ]
-    serial = build_patch(patch, exposures, BUILD, seed=1, progress=False)
-    parallel = build_patch(patch, exposures, BUILD, seed=1, progress=False, workers=2)
-    assert list(serial.cells) == list(parallel.cells)
-    for index, cell in serial.cells.items():
-        assert cell.equals(parallel.cells[index]), index
+    serial = build_patch(tract.patch(0, 0), exposures, BUILD, seed=1, progress=False)
+    return exposures, serial
+
+
+def _assert_same_patch(first, second):
+    assert list(first.cells) == list(second.cells)
+    for index, cell in first.cells.items():
+        assert cell.equals(second.cells[index]), index
+
+
+def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
+    exposures, serial = patch_inputs
+    parallel = build_patch(tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, workers=2)
+    _assert_same_patch(serial, parallel)
     assert sum(not c.is_empty for c in serial.cells.values()) >= 4
+
+
+def test_patch_identical_on_a_dask_cluster(tract, patch_inputs):
+    distributed = pytest.importorskip("distributed")
+    exposures, serial = patch_inputs
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:
+        on_dask = build_patch(
+            tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=client
+        )
+    _assert_same_patch(serial, on_dask)
+
+
+def test_a_failing_cell_is_named(tract, patch_inputs):
+    from cellcoadd import CellBuildError
+
+    exposures, _ = patch_inputs
+
+    def failing_psf(x, y):
+        raise ZeroDivisionError("boom")
+
+    bad = make_exposure(exposures[0].wcs.wcs.crval, visit=99)
+    bad.psf = failing_psf  # recorded as bad_psf, not a failure
+    ok = build_patch(tract.patch(0, 0), [*exposures, bad], BUILD, seed=1, progress=False)
+    assert any(r.status == "bad_psf" for c in ok.cells.values() for r in c.inputs)
+    with pytest.raises(CellBuildError, match=r"cell \(-?\d+, -?\d+\) of tract 0 failed"):
+        build_patch(tract.patch(0, 0), exposures, BuildConfig(psf_size=99), progress=False)
 
 
 def test_bad_inputs_are_refused_or_recorded(tract):

@@ -222,7 +222,6 @@ def _finish(
     config: BuildConfig,
     mask_bits: MaskBits,
 ) -> CellCoadd:
-    shape = cell.outer_bbox.shape
     common = {
         "inputs": records,
         "tract": cell.tract,
@@ -232,16 +231,8 @@ def _finish(
         "wcs": cell.wcs,
     }
     if sums.weight <= 0.0:
-        nan = np.full(shape, np.nan, dtype=np.float32)
-        return CellCoadd(
-            image=nan,
-            mask=np.full(shape, mask_bits.value("NO_DATA"), dtype=np.int32),
-            variance=nan.copy(),
-            noise=np.full((config.n_noise, *shape), np.nan, dtype=np.float32),
-            mfrac=np.ones(shape, dtype=np.float32),
-            psf=np.zeros((config.psf_size, config.psf_size)),
-            is_empty=True,
-            **common,
+        return CellCoadd.empty(
+            n_noise=config.n_noise, psf_size=config.psf_size, mask_bits=mask_bits, **common
         )
     total = sums.weight
     psf = sums.psf / sums.psf.sum()
@@ -252,7 +243,6 @@ def _finish(
         noise=(sums.noise / total).astype(np.float32),
         mfrac=np.clip(sums.mfrac / total, 0.0, 1.0).astype(np.float32),
         psf=psf,
-        is_empty=False,
         **common,
     )
 

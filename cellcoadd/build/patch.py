@@ -105,9 +105,11 @@ def build_patch(
     exposures = list(exposures)
     check_unique_inputs(exposures)
     bands = sorted({exposure.band for exposure in exposures})
+    if not bands:
+        raise ValueError("build_patch needs at least one exposure")
     if len(bands) > 1:
         raise ValueError(f"exposures of several bands given ({bands}); build one band at a time")
-    mask_bits = exposures[0].mask_bits if exposures else MaskBits()
+    mask_bits = exposures[0].mask_bits
     cells = patch.cells
     tasks = [
         (cell, [e for e in exposures if rough_exposure_box(cell, e) is not None]) for cell in cells
@@ -146,14 +148,12 @@ def build_patch(
         tract=patch.tract.id,
         tract_center=patch.tract.center,
         patch=patch.index,
-        band=bands[0] if bands else "",
+        band=bands[0],
         units=units or f"counts at zero point {config.zero_point:g} per coadd pixel",
         mask_bits=mask_bits,
         build_config=config,
         software_version=__version__,
         format_version=FORMAT_VERSION,
-        n_noise=config.n_noise,
-        psf_size=config.psf_size,
     )
     ordered = {cell.index: results[cell.index] for cell in cells}
     return PatchCoadd(metadata=metadata, cells=ordered)

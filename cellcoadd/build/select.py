@@ -76,7 +76,8 @@ def select_exposure(
     if not valid.contains_box(footprint):
         return "edge", {"overlap_fraction": overlap_fraction}
     flux_scale = 10.0 ** (0.4 * (config.zero_point - exposure.zero_point))
-    weight = 1.0 / (flux_scale**2 * exposure.background_variance)
+    variance = flux_scale**2 * exposure.background_variance
+    weight = 1.0 / variance if variance > 0.0 else float("nan")
     if not np.isfinite(weight) or weight <= 0.0:
         return "bad_weight", {"overlap_fraction": overlap_fraction}
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0

@@ -11,7 +11,9 @@ import sys
 import click
 
 from cellcoadd._version import __version__
+from cellcoadd.cli.build import build
 from cellcoadd.cli.geometry import locate, skymap
+from cellcoadd.cli.simulate import simulate
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -29,7 +31,7 @@ def cli(debug: bool) -> None:
     """
 
 
-for command in (skymap, locate):
+for command in (skymap, locate, simulate, build):
     cli.add_command(command)
 
 

@@ -20,6 +20,7 @@ from astropy.wcs import WCS
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import InnerRegion
+from cellcoadd.geometry.wcs_utils import canonical_wcs, gnomonic_radec, gnomonic_uv
 
 
 def tract_wcs(center: tuple[float, float], config: SkyMapConfig) -> WCS:
@@ -38,7 +39,7 @@ def tract_wcs(center: tuple[float, float], config: SkyMapConfig) -> WCS:
     wcs.wcs.cunit = ["deg", "deg"]
     wcs.wcs.radesys = "ICRS"
     wcs.wcs.set()
-    return wcs
+    return canonical_wcs(wcs)
 
 
 def shifted_wcs(wcs: WCS, x_start: int, y_start: int) -> WCS:
@@ -46,7 +47,7 @@ def shifted_wcs(wcs: WCS, x_start: int, y_start: int) -> WCS:
     out = wcs.deepcopy()
     out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
     out.wcs.set()
-    return out
+    return canonical_wcs(out)
 
 
 @dataclass(frozen=True)
@@ -230,29 +231,32 @@ class Tract:
             tract_wcs=self.wcs,
         )
 
+    @property
+    def _center_pixel(self) -> float:
+        # tangent point at the centre of the box, as in :func:`tract_wcs`
+        return (self.config.tract_pixels - 1) / 2.0
+
     def sky_to_pixel(self, ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tract pixel ``(x, y)`` (0-based) of ``(ra, dec)`` in deg; vectorised.
 
-        Positions 90 deg or more from the tangent point have no projection: NaN.
+        The same gnomonic projection as :attr:`wcs`, computed directly (much faster than
+        building the astropy object for every tract). Positions 90 deg or more from the
+        tangent point have no projection: NaN.
         """
-        ra = np.atleast_1d(np.asarray(ra, dtype=float))
-        dec = np.atleast_1d(np.asarray(dec, dtype=float))
-        x, y = self.wcs.wcs_world2pix(ra, dec, 0)
-        ra0, dec0 = np.radians(self.center)
-        cos_c = np.sin(dec0) * np.sin(np.radians(dec)) + np.cos(dec0) * np.cos(
-            np.radians(dec)
-        ) * np.cos(np.radians(ra) - ra0)
-        far = cos_c <= 1e-6
-        x[far] = np.nan
-        y[far] = np.nan
-        return x, y
+        u, v = gnomonic_uv(
+            np.atleast_1d(np.asarray(ra, dtype=float)),
+            np.atleast_1d(np.asarray(dec, dtype=float)),
+            *self.center,
+        )
+        scale = self.config.pixel_scale
+        return self._center_pixel + u / scale, self._center_pixel + v / scale
 
     def pixel_to_sky(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(ra, dec)`` in deg, RA in [0, 360), of tract pixel(s) ``(x, y)``; vectorised."""
-        ra, dec = self.wcs.wcs_pix2world(
-            np.atleast_1d(np.asarray(x, dtype=float)), np.atleast_1d(np.asarray(y, dtype=float)), 0
-        )
-        return np.mod(ra, 360.0), dec
+        scale = self.config.pixel_scale
+        u = (np.atleast_1d(np.asarray(x, dtype=float)) - self._center_pixel) * scale
+        v = (np.atleast_1d(np.asarray(y, dtype=float)) - self._center_pixel) * scale
+        return gnomonic_radec(u, v, *self.center)
 
     def contains_inner(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """Whether sky position(s) (deg) belong to this tract's inner region."""

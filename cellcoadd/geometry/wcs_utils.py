@@ -7,8 +7,12 @@ East to the left has ``du/dx > 0``.
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 from astropy.wcs import WCS
+
+ARCSEC_PER_RADIAN = 180.0 / np.pi * 3600.0
 
 
 def local_jacobian(wcs: WCS, x: float, y: float, step: float = 0.5) -> np.ndarray:
@@ -30,23 +34,57 @@ def local_jacobian(wcs: WCS, x: float, y: float, step: float = 0.5) -> np.ndarra
     )
 
 
+def _tangent_basis(ra0: float, dec0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors of the tangent point and of East and North there."""
+    a, d = np.radians(ra0), np.radians(dec0)
+    center = np.array([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)])
+    east = np.array([-np.sin(a), np.cos(a), 0.0])
+    north = np.array([-np.sin(d) * np.cos(a), -np.sin(d) * np.sin(a), np.cos(d)])
+    return center, east, north
+
+
 def gnomonic_uv(
     ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gnomonic projection (arcsec) of ``(ra, dec)`` (deg) about ``(ra0, dec0)`` (deg).
 
-    ``u`` points West (decreasing RA), ``v`` North; see the module docstring.
+    ``u`` points West (decreasing RA), ``v`` North; see the module docstring. Positions
+    90 deg or more from the tangent point have no projection: NaN.
     """
+    center, east, north = _tangent_basis(ra0, dec0)
     ra_r, dec_r = np.radians(ra), np.radians(dec)
-    ra0_r, dec0_r = np.radians(ra0), np.radians(dec0)
-    dra = ra_r - ra0_r
-    cos_c = np.sin(dec0_r) * np.sin(dec_r) + np.cos(dec0_r) * np.cos(dec_r) * np.cos(dra)
-    east = np.cos(dec_r) * np.sin(dra) / cos_c
-    north = (np.cos(dec0_r) * np.sin(dec_r) - np.sin(dec0_r) * np.cos(dec_r) * np.cos(dra)) / cos_c
-    to_arcsec = 180.0 / np.pi * 3600.0
-    return -east * to_arcsec, north * to_arcsec
+    cos_dec = np.cos(dec_r)
+    q = np.stack([cos_dec * np.cos(ra_r), cos_dec * np.sin(ra_r), np.sin(dec_r)], axis=-1)
+    cos_c = q @ center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(cos_c > 1e-9, ARCSEC_PER_RADIAN / cos_c, np.nan)
+    return -(q @ east) * scale, (q @ north) * scale
+
+
+def gnomonic_radec(
+    u: np.ndarray, v: np.ndarray, ra0: float, dec0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`gnomonic_uv`: ``(ra, dec)`` in deg (RA in [0, 360)) of ``(u, v)``."""
+    center, east, north = _tangent_basis(ra0, dec0)
+    xi = -np.asarray(u, dtype=float)[..., None] / ARCSEC_PER_RADIAN
+    eta = np.asarray(v, dtype=float)[..., None] / ARCSEC_PER_RADIAN
+    p = center + xi * east + eta * north
+    ra = np.degrees(np.arctan2(p[..., 1], p[..., 0])) % 360.0
+    dec = np.degrees(np.arctan2(p[..., 2], np.hypot(p[..., 0], p[..., 1])))
+    return ra, dec
 
 
 def pixel_area(wcs: WCS, x: float, y: float) -> float:
     """Area of one pixel at ``(x, y)`` in arcsec^2 (absolute Jacobian determinant)."""
     return float(abs(np.linalg.det(local_jacobian(wcs, x, y))))
+
+
+def canonical_wcs(wcs: WCS) -> WCS:
+    """``wcs`` in the form it takes after being sent to another process.
+
+    astropy serialises a WCS through its FITS header, which can change the last bits of
+    its parameters once (e.g. CD -> PC x CDELT); later round trips are exact. Building
+    every WCS in this form makes results bit-identical whether a computation runs here
+    or in a worker process.
+    """
+    return pickle.loads(pickle.dumps(wcs))

@@ -24,7 +24,7 @@ import numpy as np
 from astropy.wcs import WCS
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.wcs_utils import local_jacobian
+from cellcoadd.geometry.wcs_utils import canonical_wcs, local_jacobian
 from cellcoadd.model.maskbits import MaskBits
 
 PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
@@ -84,6 +84,7 @@ class Exposure:
             self.image = self.image.astype(np.float64)
         if not isinstance(self.wcs, WCS) or not self.wcs.has_celestial:
             raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
+        self.wcs = canonical_wcs(self.wcs)
         if not np.isfinite(self.zero_point) or not -50.0 < self.zero_point < 100.0:
             raise ExposureError(
                 f"{name}: zero_point {self.zero_point} is not a plausible magnitude"

@@ -1,0 +1,199 @@
+"""Command-line tools for stored coadds: ``info``, ``convert`` and ``schemas``."""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+from collections import Counter
+from typing import Any
+
+import click
+
+from cellcoadd.io import api
+from cellcoadd.io.errors import CellCoaddFormatError
+from cellcoadd.model.inputs import REJECTION_REASONS
+from cellcoadd.model.schemas import write_schemas
+
+_ERRORS = (CellCoaddFormatError, OSError, ValueError)
+
+
+def patch_summary(path: str) -> dict[str, Any]:
+    """Summary of a patch file without reading pixel data (used by ``cellcoadd info``).
+
+    Keys: file, format, format_version, size_bytes, software_version, tract, patch, band,
+    units, n_noise, psf_size, planes, cells (counts), inputs (totals by status), per_cell
+    (one entry per cell: index, kind, used, rejected by reason).
+    """
+    with api.open(path) as coadd_file:
+        meta = coadd_file.metadata
+        table = coadd_file.read_inputs()
+        layout = coadd_file.format_name
+        indices = list(coadd_file.cell_indices)
+    inner = set(meta.inner_cell_indices)
+    statuses: dict[tuple[int, int], Counter[str]] = {index: Counter() for index in indices}
+    for cx, cy, status in zip(table["cell_x"], table["cell_y"], table["status"], strict=True):
+        statuses[(int(cx), int(cy))][str(status)] += 1
+    per_cell = []
+    for index in indices:
+        counts = statuses[index]
+        per_cell.append(
+            {
+                "index": list(index),
+                "kind": "inner" if index in inner else "border",
+                "used": counts["used"],
+                "rejected": {r: counts[r] for r in REJECTION_REASONS if counts[r]},
+            }
+        )
+    used = [entry["used"] for entry in per_cell]
+    totals = Counter(str(status) for status in table["status"])
+    planes = ["image", "mask", "variance", "mfrac"]
+    planes += [f"noise ({meta.n_noise} realizations)"] if meta.n_noise else []
+    planes += [f"psf ({meta.psf_size}x{meta.psf_size})", "inputs"]
+    return {
+        "file": os.fspath(path),
+        "format": layout,
+        "format_version": meta.format_version,
+        "size_bytes": os.path.getsize(path),
+        "software_version": meta.software_version,
+        "tract": meta.tract,
+        "patch": list(meta.patch),
+        "band": meta.band,
+        "units": meta.units,
+        "n_noise": meta.n_noise,
+        "psf_size": meta.psf_size,
+        "planes": planes,
+        "cells": {
+            "total": len(indices),
+            "inner": sum(index in inner for index in indices),
+            "border": sum(index not in inner for index in indices),
+            "empty": sum(n == 0 for n in used),
+            "missing_inner": len(inner - set(indices)),
+        },
+        "inputs": {
+            "total": len(table),
+            "used": totals["used"],
+            "rejected": {r: totals[r] for r in REJECTION_REASONS if totals[r]},
+            "used_per_cell": {
+                "min": min(used, default=0),
+                "median": statistics.median(used) if used else 0,
+                "max": max(used, default=0),
+            },
+        },
+        "per_cell": per_cell,
+    }
+
+
+def _format_size(n_bytes: int) -> str:
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n_bytes >= scale:
+            return f"{n_bytes / scale:.1f} {unit}"
+    return f"{n_bytes} B"
+
+
+def _reasons(rejected: dict[str, int]) -> str:
+    return ", ".join(f"{reason} {n}" for reason, n in rejected.items()) or "none"
+
+
+def _summary_text(summary: dict[str, Any], per_cell: bool) -> str:
+    cells, inputs = summary["cells"], summary["inputs"]
+    per = inputs["used_per_cell"]
+    lines = [
+        f"file      {summary['file']} ({summary['format'].upper()}, "
+        f"{_format_size(summary['size_bytes'])}, format {summary['format_version']}, "
+        f"cellcoadd {summary['software_version']})",
+        f"patch     tract {summary['tract']}, patch ({summary['patch'][0]}, "
+        f"{summary['patch'][1]}), band {summary['band']}, units {summary['units']}",
+        f"cells     {cells['total']} ({cells['inner']} inner + {cells['border']} border), "
+        f"{cells['empty']} empty, {cells['missing_inner']} inner missing",
+        f"planes    {', '.join(summary['planes'])}",
+        f"inputs    {inputs['total']} records: {inputs['used']} used, rejected: "
+        f"{_reasons(inputs['rejected'])}",
+        f"per cell  used inputs min {per['min']}, median {per['median']}, max {per['max']}",
+    ]
+    if per_cell:
+        lines.append("cell          kind    used  rejected")
+        for entry in summary["per_cell"]:
+            cx, cy = entry["index"]
+            lines.append(
+                f"({cx:>4}, {cy:>4})  {entry['kind']:<6} {entry['used']:>5}  "
+                f"{_reasons(entry['rejected'])}"
+            )
+    return "\n".join(lines)
+
+
+@click.command("info")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@click.option("--cells", "per_cell", is_flag=True, help="Also list every cell's inputs.")
+def info_command(path: str, as_json: bool, per_cell: bool) -> None:
+    """Summarise a stored patch coadd (no pixel data is read).
+
+    \b
+    Examples:
+      cellcoadd info patch.fits
+      cellcoadd info patch.h5 --cells
+      cellcoadd info patch.h5 --json > summary.json
+    """
+    try:
+        summary = patch_summary(path)
+    except _ERRORS as err:
+        raise click.ClickException(str(err)) from err
+    if as_json:
+        click.echo(json.dumps(summary, indent=2, ensure_ascii=False))
+    else:
+        click.echo(_summary_text(summary, per_cell))
+
+
+@click.command("convert")
+@click.argument("source", type=click.Path(dir_okay=False))
+@click.argument("destination", type=click.Path(dir_okay=False))
+@click.option(
+    "--compression",
+    type=click.Choice(["none", "lossless"]),
+    default=None,
+    help="Lossless compression (default: only for .fits.fz names).",
+)
+@click.option("--overwrite", is_flag=True, help="Replace DESTINATION if it exists.")
+def convert_command(
+    source: str, destination: str, compression: str | None, overwrite: bool
+) -> None:
+    """Copy a patch coadd into another layout (chosen by the file name), bit for bit.
+
+    \b
+    Examples:
+      cellcoadd convert patch.fits patch.h5
+      cellcoadd convert patch.h5 patch.fits.fz
+      cellcoadd convert patch.fits small.h5 --compression lossless --overwrite
+    """
+    try:
+        written = api.convert(source, destination, compression=compression, overwrite=overwrite)
+    except FileExistsError as err:
+        raise click.ClickException(f"{destination} exists; use --overwrite to replace it") from err
+    except _ERRORS as err:
+        raise click.ClickException(str(err)) from err
+    click.echo(f"wrote {written} ({_format_size(os.path.getsize(written))})")
+
+
+@click.command("schemas")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default="schemas",
+    show_default=True,
+    help="Directory to write the JSON Schema files into.",
+)
+def schemas_command(out_dir: str) -> None:
+    """Write the JSON Schemas of the metadata models (<Model>.v<MAJOR>.json).
+
+    \b
+    Example:
+      cellcoadd schemas --out schemas/
+    """
+    try:
+        written = write_schemas(out_dir)
+    except OSError as err:
+        raise click.ClickException(str(err)) from err
+    for path in written:
+        click.echo(str(path))

@@ -1,0 +1,303 @@
+"""Ensemble metacal responses, calibrated mean shear and multiplicative bias.
+
+Input catalogues are the outputs of :func:`cellcoadd.shear.metacal.measure_metacal`: for
+each metacal type a structured array of :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE`, one
+row per object, rows aligned across types (either one such mapping, or a list of
+per-object mappings, which :func:`stack_results` concatenates).
+
+Estimators (Sheldon & Huff 2017; paper section 4.2)
+----------------------------------------------------
+With ``S_t`` the objects selected on the measurements of type ``t`` (``flags == 0`` and the
+optional cuts) and ``e`` the ``(g1, g2)`` estimator:
+
+* ``<e> = mean of e_noshear over S_noshear``;
+* shear response ``R_ij = mean over S_noshear of (e_i[jp] - e_i[jm]) / (2 step)``, using the
+  objects of ``S_noshear`` whose four sheared measurements all succeeded;
+* selection response ``R_S_ij = (<e_i[noshear]>_{S_jp} - <e_i[noshear]>_{S_jm}) / (2 step)``:
+  the *noshear* shapes averaged over the objects selected on the ``jp`` / ``jm``
+  measurements (each set also needs a valid noshear shape). With no failures and no cuts
+  it is exactly zero;
+* calibrated mean shear ``g = (R + R_S)^-1 <e>``.
+
+Errors are delete-one-block jackknife over objects (contiguous blocks in input order).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellcoadd.shear.metacal import METACAL_TYPES
+
+Results = Mapping[str, np.ndarray] | Sequence[Mapping[str, np.ndarray]]
+#: A selection maps one catalogue (structured array) to a boolean mask of kept objects.
+Selection = Callable[[np.ndarray], np.ndarray]
+
+_SHEARED = (("1p", "1m"), ("2p", "2m"))
+# Columns of the per-object sums: count and <e> on noshear (3), count and response sums
+# for R (5), then for each of 1p, 1m, 2p, 2m the count and <e_noshear> sums (3 each).
+_N_COLUMNS = 3 + 5 + 4 * 3
+
+
+@dataclass(frozen=True)
+class SelectionCuts:
+    """The paper's cuts (section 5): ``s2n > s2n_min`` and ``T / T_psf > T_ratio_min``.
+
+    Calling an instance on a catalogue returns the boolean mask of objects that pass the
+    cuts and have ``flags == 0``.
+    """
+
+    s2n_min: float = 10.0
+    T_ratio_min: float = 0.5
+
+    def __call__(self, catalogue: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (
+                (catalogue["flags"] == 0)
+                & (catalogue["s2n"] > self.s2n_min)
+                & (catalogue["T"] / catalogue["T_psf"] > self.T_ratio_min)
+            )
+
+
+#: Cuts used for metacalibration in the paper: S/N > 10 and T/T_psf > 0.5.
+PAPER_CUTS = SelectionCuts()
+
+
+@dataclass(frozen=True, eq=False)
+class ShearResponse:
+    """Ensemble metacal responses.
+
+    Attributes
+    ----------
+    R : ndarray, shape (2, 2)
+        Shear response ``d e_i / d g_j``.
+    R_S : ndarray, shape (2, 2)
+        Selection response (zero without failures or cuts).
+    mean_e : ndarray, shape (2,)
+        Mean noshear ellipticity of the selected objects.
+    n_selected : int
+        Number of objects selected on the noshear measurements.
+    """
+
+    R: np.ndarray
+    R_S: np.ndarray
+    mean_e: np.ndarray
+    n_selected: int
+
+    @property
+    def total(self) -> np.ndarray:
+        """``R + R_S``, the matrix that calibrates the mean ellipticity."""
+        return self.R + self.R_S
+
+    @property
+    def shear(self) -> np.ndarray:
+        """Calibrated mean shear ``(R + R_S)^-1 <e>``, shape (2,)."""
+        return np.linalg.solve(self.total, self.mean_e)
+
+
+def stack_results(results: Results) -> dict[str, np.ndarray]:
+    """One catalogue per metacal type, rows aligned across types.
+
+    Parameters
+    ----------
+    results : mapping or sequence of mappings
+        ``{type: structured array}`` (returned as is after checks), or a list of such
+        mappings (e.g. one :func:`measure_metacal` result per object), concatenated.
+
+    Raises
+    ------
+    ValueError
+        A metacal type is missing or the types have different lengths.
+    """
+    if isinstance(results, Mapping):
+        stacked = {name: np.asarray(results[name]) for name in METACAL_TYPES if name in results}
+    else:
+        if len(results) == 0:
+            raise ValueError("no results to stack")
+        stacked = {
+            name: np.concatenate([np.atleast_1d(r[name]) for r in results])
+            for name in METACAL_TYPES
+            if all(name in r for r in results)
+        }
+    missing = set(METACAL_TYPES) - set(stacked)
+    if missing:
+        raise ValueError(f"metacal types {sorted(missing)} are missing from the results")
+    lengths = {len(cat) for cat in stacked.values()}
+    if len(lengths) != 1:
+        raise ValueError(f"metacal types have different numbers of objects: {sorted(lengths)}")
+    return stacked
+
+
+def _selected(catalogue: np.ndarray, selection: Selection | None) -> np.ndarray:
+    valid = (catalogue["flags"] == 0) & np.isfinite(catalogue["g1"]) & np.isfinite(catalogue["g2"])
+    if selection is not None:
+        valid &= np.asarray(selection(catalogue), dtype=bool)
+    return valid
+
+
+def _contributions(
+    catalogues: Mapping[str, np.ndarray], step: float, selection: Selection | None
+) -> np.ndarray:
+    """Per-object terms whose sums over objects give every ensemble quantity."""
+    noshear = catalogues["noshear"]
+    e = np.stack([noshear["g1"], noshear["g2"]], axis=1)
+    e = np.where(np.isfinite(e), e, 0.0)
+    valid_noshear = _selected(noshear, None)
+    in_noshear = _selected(noshear, selection)
+    sheared_ok = np.ones(len(noshear), dtype=bool)
+    for name in METACAL_TYPES[1:]:
+        sheared_ok &= _selected(catalogues[name], None)
+    with_response = in_noshear & sheared_ok
+
+    terms = np.zeros((len(noshear), _N_COLUMNS))
+    terms[:, 0] = in_noshear
+    terms[:, 1:3] = e * in_noshear[:, np.newaxis]
+    terms[:, 3] = with_response
+    for j, (plus, minus) in enumerate(_SHEARED):
+        for i, component in enumerate(("g1", "g2")):
+            derivative = (catalogues[plus][component] - catalogues[minus][component]) / (2 * step)
+            terms[:, 4 + 2 * i + j] = np.where(with_response, derivative, 0.0)
+    column = 8
+    for plus, minus in _SHEARED:
+        for name in (plus, minus):
+            in_sheared = _selected(catalogues[name], selection) & valid_noshear
+            terms[:, column] = in_sheared
+            terms[:, column + 1 : column + 3] = e * in_sheared[:, np.newaxis]
+            column += 3
+    return terms
+
+
+def _response_from_sums(sums: np.ndarray, step: float) -> ShearResponse:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_e = sums[1:3] / sums[0]
+        R = sums[4:8].reshape(2, 2) / sums[3]
+        R_S = np.zeros((2, 2))
+        for j in range(2):
+            plus = sums[8 + 6 * j : 11 + 6 * j]
+            minus = sums[11 + 6 * j : 14 + 6 * j]
+            R_S[:, j] = (plus[1:] / plus[0] - minus[1:] / minus[0]) / (2 * step)
+    return ShearResponse(R=R, R_S=R_S, mean_e=mean_e, n_selected=int(round(sums[0])))
+
+
+def _calibrated_shear(sums: np.ndarray, step: float) -> np.ndarray:
+    response = _response_from_sums(sums, step)
+    if not np.all(np.isfinite(response.total)) or not np.all(np.isfinite(response.mean_e)):
+        return np.full(2, np.nan)
+    return response.shear
+
+
+def _jackknife(
+    terms: np.ndarray, n_blocks: int, estimator: Callable[[np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate from all objects, and its delete-one-block jackknife standard error."""
+    n_objects = len(terms)
+    n_blocks = min(n_blocks, n_objects)
+    if n_blocks < 2:
+        raise ValueError(f"a jackknife needs at least 2 objects, got {n_objects}")
+    labels = np.arange(n_objects) * n_blocks // n_objects
+    block_sums = np.zeros((n_blocks, terms.shape[1]))
+    np.add.at(block_sums, labels, terms)
+    total = block_sums.sum(axis=0)
+    estimate = estimator(total)
+    leave_one_out = np.array([estimator(total - block) for block in block_sums])
+    spread = leave_one_out - leave_one_out.mean(axis=0)
+    error = np.sqrt((n_blocks - 1) / n_blocks * np.sum(spread**2, axis=0))
+    return estimate, error
+
+
+def shear_response(
+    results: Results, step: float = 0.01, selection: Selection | None = None
+) -> ShearResponse:
+    """Ensemble shear response ``R`` and selection response ``R_S``.
+
+    Parameters
+    ----------
+    results : mapping or sequence of mappings
+        Metacal measurements; see :func:`stack_results`.
+    step : float
+        The metacal shear step used to make the images.
+    selection : callable, optional
+        Cut applied to each metacal catalogue separately, e.g. :data:`PAPER_CUTS`;
+        ``flags == 0`` is always required.
+
+    Returns
+    -------
+    ShearResponse
+    """
+    catalogues = stack_results(results)
+    sums = _contributions(catalogues, step, selection).sum(axis=0)
+    return _response_from_sums(sums, step)
+
+
+def mean_shear(
+    results: Results,
+    step: float = 0.01,
+    selection: Selection | None = None,
+    n_blocks: int = 100,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Calibrated mean shear ``(R + R_S)^-1 <e>`` and its jackknife error.
+
+    Parameters
+    ----------
+    results, step, selection
+        As for :func:`shear_response`.
+    n_blocks : int
+        Number of jackknife blocks (at most the number of objects).
+
+    Returns
+    -------
+    g, g_err : ndarray, shape (2,)
+    """
+    terms = _contributions(stack_results(results), step, selection)
+    return _jackknife(terms, n_blocks, lambda sums: _calibrated_shear(sums, step))
+
+
+def multiplicative_bias(
+    plus: Results,
+    minus: Results,
+    true_g: float = 0.02,
+    step: float = 0.01,
+    selection: Selection | None = None,
+    n_blocks: int = 100,
+) -> dict[str, float]:
+    """Multiplicative and additive shear biases from paired simulations.
+
+    ``plus`` and ``minus`` are the same objects and noise sheared by ``(+true_g, 0)`` and
+    ``(-true_g, 0)``; row ``k`` of both is the same object. With ``g+`` and ``g-`` the
+    calibrated mean shears (each with its own responses), ``m1 = (g+_1 - g-_1) /
+    (2 true_g) - 1`` and ``c_i = (g+_i + g-_i) / 2``: the pairing cancels the shape noise
+    in ``m1``. Errors are jackknife over blocks of objects, removing a pair's two members
+    together.
+
+    Returns
+    -------
+    dict
+        ``m1, m1_err, c1, c1_err, c2, c2_err``.
+    """
+    plus_cats, minus_cats = stack_results(plus), stack_results(minus)
+    if len(plus_cats["noshear"]) != len(minus_cats["noshear"]):
+        raise ValueError("plus and minus catalogues must hold the same objects (same length)")
+    terms = np.hstack(
+        [
+            _contributions(plus_cats, step, selection),
+            _contributions(minus_cats, step, selection),
+        ]
+    )
+
+    def biases(sums: np.ndarray) -> np.ndarray:
+        g_plus = _calibrated_shear(sums[:_N_COLUMNS], step)
+        g_minus = _calibrated_shear(sums[_N_COLUMNS:], step)
+        m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
+        return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
+
+    estimate, error = _jackknife(terms, n_blocks, biases)
+    return {
+        "m1": float(estimate[0]),
+        "m1_err": float(error[0]),
+        "c1": float(estimate[1]),
+        "c1_err": float(error[1]),
+        "c2": float(estimate[2]),
+        "c2_err": float(error[2]),
+    }
