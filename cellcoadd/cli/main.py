@@ -11,6 +11,7 @@ import sys
 import click
 
 from cellcoadd._version import __version__
+from cellcoadd.cli.analyze import analyze
 from cellcoadd.cli.build import build
 from cellcoadd.cli.geometry import locate, skymap
 from cellcoadd.cli.simulate import simulate
@@ -31,7 +32,7 @@ def cli(debug: bool) -> None:
     """
 
 
-for command in (skymap, locate, simulate, build):
+for command in (skymap, locate, simulate, build, analyze):
     cli.add_command(command)
 
 

@@ -1,0 +1,332 @@
+"""The map from coadd (cell) pixels to exposure pixels, with a verified error bound.
+
+The exact chain is ``coadd pixel -> (ra, dec) -> exposure pixel`` through the two astropy
+WCSs (``all_pix2world`` / ``all_world2pix``, origin 0, so SIP distortion is included).
+Evaluating it at every pixel of every cell for every exposure is slow, so
+:func:`map_box` evaluates it on a coarse grid, interpolates with piecewise cubics and
+checks the interpolant against the exact chain at points that were not used for it
+(the midpoints between grid nodes). The grid is refined until the checked error is
+within the tolerance, with exact evaluation at every pixel as the last resort.
+
+Conventions: 0-based pixel coordinates with pixel centres at integers (see
+:mod:`cellcoadd.geometry.box`); errors are Euclidean distances in exposure pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from astropy.wcs import WCS
+from astropy.wcs.wcs import NoConvergence
+
+from cellcoadd.build.warp import KERNEL_HALF_WIDTH
+from cellcoadd.geometry.box import Box
+
+# Inverse-SIP iterations stop at this step (exposure px): far below any tolerance used here
+# and small enough that finite differences over half a pixel stay accurate to ~1e-9.
+_WORLD2PIX_TOLERANCE = 1e-10
+_WORLD2PIX_MAXITER = 50
+# Half-width (coadd px) of the central differences giving the Jacobian.
+_DIFFERENCE_STEP = 0.5
+# The error of a piecewise cubic between check points can exceed the value at the nearest
+# check point by up to ~7% (end intervals); accepting only half the tolerance leaves margin.
+_UNIT_AREA_TOLERANCE = 1e-8
+_ACCEPT_FRACTION = 0.5
+_MIN_GRID_STEP = 4
+
+
+class MappingError(ValueError):
+    """Coadd pixels cannot be mapped into an exposure (off its projection, or diverging)."""
+
+
+@dataclass(frozen=True, eq=False)
+class PixelMapping:
+    """Exposure pixel positions of the coadd pixel centres of ``box``.
+
+    Attributes
+    ----------
+    box : Box
+        The coadd pixels mapped, in the coadd WCS's pixel coordinates.
+    x, y : ndarray, shape box.shape, float64
+        Exposure pixel coordinates (0-based) of each coadd pixel centre; NaN where the
+        pixel does not map into the exposure's projection.
+    area_ratio : ndarray, shape box.shape, float64
+        ``|det d(x_exp, y_exp) / d(x_coadd, y_coadd)|``: the area of a coadd pixel in
+        exposure pixels. Multiplying a surface brightness per exposure pixel by it gives
+        the value per coadd pixel (flux conservation).
+    max_error : float
+        Largest distance (exposure px) between the returned positions and the exact WCS
+        chain at the check points; 0 when every pixel was evaluated exactly.
+    grid_step : int
+        Nominal spacing (coadd px) of the interpolation grid; 0 for exact evaluation.
+    """
+
+    box: Box
+    x: np.ndarray
+    y: np.ndarray
+    area_ratio: np.ndarray
+    max_error: float
+    grid_step: int
+
+    @property
+    def is_complete(self) -> bool:
+        """Whether every pixel of the box has a finite exposure position."""
+        return bool(np.isfinite(self.x).all() and np.isfinite(self.y).all())
+
+
+def map_points(
+    coadd_wcs: WCS, x: np.ndarray, y: np.ndarray, exposure_wcs: WCS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact exposure pixel coordinates of coadd pixel coordinates ``(x, y)``.
+
+    Parameters
+    ----------
+    coadd_wcs, exposure_wcs : astropy.wcs.WCS
+        Celestial WCSs; pixel coordinates are 0-based.
+    x, y : array_like
+        Coadd pixel coordinates (broadcast together).
+
+    Returns
+    -------
+    x_exp, y_exp : ndarray, float64
+        Exposure pixel coordinates, NaN where the inverse exposure WCS has no solution or
+        its iteration diverges or fails to converge (points far outside a SIP exposure).
+    """
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    shape = x.shape
+    ra, dec = coadd_wcs.all_pix2world(x.ravel(), y.ravel(), 0)
+    try:
+        x_exp, y_exp = exposure_wcs.all_world2pix(
+            ra, dec, 0, tolerance=_WORLD2PIX_TOLERANCE, maxiter=_WORLD2PIX_MAXITER
+        )
+    except NoConvergence as failure:
+        solution = np.array(failure.best_solution, dtype=np.float64)
+        for bad in (failure.divergent, failure.slow_conv):
+            if bad is not None:
+                solution[np.asarray(bad)] = np.nan
+        x_exp, y_exp = solution[:, 0], solution[:, 1]
+    x_exp = np.asarray(x_exp, dtype=np.float64).reshape(shape)
+    y_exp = np.asarray(y_exp, dtype=np.float64).reshape(shape)
+    return x_exp, y_exp
+
+
+def _map_with_area(
+    coadd_wcs: WCS, x: np.ndarray, y: np.ndarray, exposure_wcs: WCS
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact positions and area ratios (central differences) at coadd points ``(x, y)``."""
+    h = _DIFFERENCE_STEP
+    offsets_x = np.array([0.0, h, -h, 0.0, 0.0])
+    offsets_y = np.array([0.0, 0.0, 0.0, h, -h])
+    x_all = x[np.newaxis] + offsets_x.reshape((5,) + (1,) * x.ndim)
+    y_all = y[np.newaxis] + offsets_y.reshape((5,) + (1,) * y.ndim)
+    x_exp, y_exp = map_points(coadd_wcs, x_all, y_all, exposure_wcs)
+    dx_dx = (x_exp[1] - x_exp[2]) / (2 * h)
+    dy_dx = (y_exp[1] - y_exp[2]) / (2 * h)
+    dx_dy = (x_exp[3] - x_exp[4]) / (2 * h)
+    dy_dy = (y_exp[3] - y_exp[4]) / (2 * h)
+    area_ratio = np.abs(dx_dx * dy_dy - dx_dy * dy_dx)
+    return x_exp[0], y_exp[0], area_ratio
+
+
+def _cubic_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Matrix ``B`` (len(positions), len(nodes)) with ``f(positions) ~= B @ f(nodes)``.
+
+    Piecewise-cubic Lagrange interpolation on uniformly spaced ``nodes`` (at least 4):
+    each position uses the four nodes around its interval (shifted inwards at the ends),
+    so it is exact for cubics and its error scales as ``spacing^4``.
+    """
+    n_nodes = nodes.size
+    spacing = nodes[1] - nodes[0]
+    u = (positions - nodes[0]) / spacing
+    interval = np.clip(np.floor(u).astype(np.int64), 0, n_nodes - 2)
+    first = np.clip(interval - 1, 0, n_nodes - 4)
+    local = u - first
+    basis = np.zeros((positions.size, n_nodes))
+    rows = np.arange(positions.size)
+    for m in range(4):
+        weight = np.ones_like(local)
+        for other in range(4):
+            if other != m:
+                weight *= (local - other) / (m - other)
+        basis[rows, first + m] = weight
+    return basis
+
+
+def _axis_nodes(start: int, stop: int, step: int) -> np.ndarray:
+    """Uniform nodes from the first to the last pixel centre of ``[start, stop)``."""
+    n_nodes = max(4, math.ceil((stop - 1 - start) / step) + 1)
+    return np.linspace(start, stop - 1, n_nodes)
+
+
+def _exact_mapping(coadd_wcs: WCS, box: Box, exposure_wcs: WCS) -> PixelMapping:
+    y_coadd, x_coadd = np.mgrid[box.y_start : box.y_stop, box.x_start : box.x_stop]
+    x_exp, y_exp, area_ratio = _map_with_area(
+        coadd_wcs, x_coadd.astype(np.float64), y_coadd.astype(np.float64), exposure_wcs
+    )
+    return _frozen_mapping(box, x_exp, y_exp, area_ratio, 0.0, 0)
+
+
+def _frozen_mapping(
+    box: Box,
+    x: np.ndarray,
+    y: np.ndarray,
+    area_ratio: np.ndarray,
+    max_error: float,
+    grid_step: int,
+) -> PixelMapping:
+    # WCS round trips leave ~1e-9 relative noise on a ratio that is exactly 1 for equal
+    # pixel scales; far below float32 precision, but it would spoil exact copies
+    area_ratio[np.abs(area_ratio - 1.0) < _UNIT_AREA_TOLERANCE] = 1.0
+    for values in (x, y, area_ratio):
+        values.setflags(write=False)
+    return PixelMapping(box, x, y, area_ratio, float(max_error), int(grid_step))
+
+
+def _try_grid(
+    coadd_wcs: WCS,
+    box: Box,
+    exposure_wcs: WCS,
+    step: int,
+    tolerance: float,
+    area_tolerance: float,
+) -> tuple[PixelMapping | None, bool]:
+    """Interpolated mapping on a grid of ``step`` px, or None if it fails verification.
+
+    The flag says whether the exact chain was finite on the whole grid; when it is not,
+    part of the box is off the exposure and no grid can help.
+    """
+    nodes_x = _axis_nodes(box.x_start, box.x_stop, step)
+    nodes_y = _axis_nodes(box.y_start, box.y_stop, step)
+    # Nodes and the midpoints between them; the midpoints (odd indices) are check points.
+    dense_x = np.linspace(nodes_x[0], nodes_x[-1], 2 * nodes_x.size - 1)
+    dense_y = np.linspace(nodes_y[0], nodes_y[-1], 2 * nodes_y.size - 1)
+    grid_x, grid_y = np.meshgrid(dense_x, dense_y)
+    exact_x, exact_y, exact_area = _map_with_area(coadd_wcs, grid_x, grid_y, exposure_wcs)
+    finite = np.isfinite(exact_x).all() and np.isfinite(exact_y).all()
+    if not (finite and np.isfinite(exact_area).all() and (exact_area > 0).all()):
+        return None, False
+
+    basis_x = _cubic_basis(nodes_x, dense_x)
+    basis_y = _cubic_basis(nodes_y, dense_y)
+
+    def interpolate(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        # einsum, not matmul: BLAS threading costs far more than these tiny products and
+        # competes with the processes building other cells
+        partial = np.einsum("ij,jk->ik", rows, values[::2, ::2])
+        return np.einsum("ik,lk->il", partial, cols)
+
+    error = np.hypot(
+        interpolate(exact_x, basis_y, basis_x) - exact_x,
+        interpolate(exact_y, basis_y, basis_x) - exact_y,
+    )
+    max_error = float(error.max())
+    area_error = float(np.abs(interpolate(exact_area, basis_y, basis_x) / exact_area - 1).max())
+    if max_error > _ACCEPT_FRACTION * tolerance or area_error > area_tolerance:
+        return None, True
+
+    pixel_basis_x = _cubic_basis(nodes_x, np.arange(box.x_start, box.x_stop, dtype=np.float64))
+    pixel_basis_y = _cubic_basis(nodes_y, np.arange(box.y_start, box.y_stop, dtype=np.float64))
+    mapping = _frozen_mapping(
+        box,
+        interpolate(exact_x, pixel_basis_y, pixel_basis_x),
+        interpolate(exact_y, pixel_basis_y, pixel_basis_x),
+        interpolate(exact_area, pixel_basis_y, pixel_basis_x),
+        max_error,
+        step,
+    )
+    return mapping, True
+
+
+def map_box(
+    coadd_wcs: WCS,
+    box: Box,
+    exposure_wcs: WCS,
+    tolerance: float = 1e-3,
+    grid_step: int = 32,
+    area_tolerance: float = 1e-6,
+) -> PixelMapping:
+    """Map every coadd pixel centre of ``box`` into exposure pixel coordinates.
+
+    Parameters
+    ----------
+    coadd_wcs : astropy.wcs.WCS
+        WCS of the coadd frame ``box`` lives in (0-based pixels).
+    box : Box
+        Coadd pixels to map (half-open).
+    exposure_wcs : astropy.wcs.WCS
+        The exposure's WCS; SIP distortion is honoured.
+    tolerance : float
+        Largest allowed position error (exposure px) at the check points. A grid is
+        accepted only when its checked error is at most half of this, which bounds the
+        error between check points as well.
+    grid_step : int
+        Initial grid spacing (coadd px); halved on failure down to 4 px, after which
+        every pixel is evaluated exactly.
+    area_tolerance : float
+        Largest allowed relative error of ``area_ratio`` at the check points.
+
+    Returns
+    -------
+    PixelMapping
+        With ``max_error <= tolerance``. Pixels outside the exposure's projection (or
+        where its inverse does not converge) get NaN: check ``is_complete``.
+    """
+    if not tolerance > 0 or not area_tolerance > 0:
+        raise ValueError("tolerance and area_tolerance must be positive")
+    if grid_step < 1:
+        raise ValueError(f"grid_step must be positive, got {grid_step}")
+    if box.is_empty:
+        empty = np.zeros(box.shape)
+        return _frozen_mapping(box, empty, empty.copy(), empty.copy(), 0.0, 0)
+    step = grid_step
+    # A cubic needs four nodes per axis; tiny boxes are cheaper to evaluate exactly anyway.
+    if min(box.nx, box.ny) >= 4:
+        while step >= _MIN_GRID_STEP:
+            mapping, finite = _try_grid(
+                coadd_wcs, box, exposure_wcs, step, tolerance, area_tolerance
+            )
+            if mapping is not None:
+                return mapping
+            if not finite:
+                break
+            step //= 2
+    return _exact_mapping(coadd_wcs, box, exposure_wcs)
+
+
+def footprint_box(mapping: PixelMapping, half_width: int = KERNEL_HALF_WIDTH) -> Box:
+    """Exposure pixels touched by the resampling kernel taps of all mapped pixels.
+
+    Taps run from ``floor(x) - (half_width - 1)`` to ``floor(x) + half_width`` (Lanczos-3:
+    ``floor(x) - 2 .. floor(x) + 3``), so the box is
+    ``[min floor(x) - half_width + 1, max floor(x) + half_width + 1)`` and likewise in y.
+    An exposure can be resampled without edge effects iff its valid box contains this.
+
+    Parameters
+    ----------
+    mapping : PixelMapping
+        Or any object with exposure pixel coordinate arrays ``x`` and ``y`` (e.g. a
+        subset of a mapping's pixels).
+    half_width : int
+        Kernel half-width in pixels.
+
+    Raises
+    ------
+    MappingError
+        If there are no pixels or some do not map into the exposure (non-finite).
+    """
+    x = np.asarray(mapping.x, dtype=np.float64)
+    y = np.asarray(mapping.y, dtype=np.float64)
+    if x.size == 0:
+        raise MappingError("an empty mapping has no footprint")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise MappingError("some pixels do not map into the exposure")
+    floor_x = np.floor(x)
+    floor_y = np.floor(y)
+    return Box(
+        x_start=int(floor_x.min()) - (half_width - 1),
+        x_stop=int(floor_x.max()) + half_width + 1,
+        y_start=int(floor_y.min()) - (half_width - 1),
+        y_stop=int(floor_y.max()) + half_width + 1,
+    )
