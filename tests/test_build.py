@@ -16,8 +16,14 @@ VARIANTS = [
     dict(pixel_scale=0.26, rotation_deg=0.0, offset=(0.3, -0.2), psf=(0.85, 0.0, 0.02)),
     dict(pixel_scale=0.2, rotation_deg=33.0, offset=(-0.4, 0.1), psf=(0.95, 0.03, -0.01)),
     dict(pixel_scale=0.24, rotation_deg=-71.0, offset=(0.1, 0.45), psf=(1.1, -0.02, 0.0)),
-    dict(pixel_scale=0.26, rotation_deg=12.0, offset=(0.25, 0.25), shear=0.02, sip=True,
-         psf=(0.9, 0.0, 0.04)),
+    dict(
+        pixel_scale=0.26,
+        rotation_deg=12.0,
+        offset=(0.25, 0.25),
+        shear=0.02,
+        sip=True,
+        psf=(0.9, 0.0, 0.04),
+    ),
 ]
 
 
@@ -119,8 +125,14 @@ def test_integer_shift_with_identical_scale_is_an_exact_copy(tract):
     from cellcoadd import Exposure
 
     exposure = Exposure(
-        image=image, wcs=wcs, variance=1.0, psf=galsim.Gaussian(fwhm=0.8), visit=1,
-        detector=1, band="r", zero_point=30.0,
+        image=image,
+        wcs=wcs,
+        variance=1.0,
+        psf=galsim.Gaussian(fwhm=0.8),
+        visit=1,
+        detector=1,
+        band="r",
+        zero_point=30.0,
     )
     coadd = build_cell(cell, [exposure], BUILD)
     ny, nx = cell.outer_bbox.shape
@@ -155,8 +167,14 @@ def test_pure_noise_realizations_match_the_image_noise(tract):
     config = BuildConfig(n_noise=3, psf_size=25)
     sigma = 2.0
     exposures = [
-        make_exposure(cell.center_sky, shape=(200, 200), noise_sigma=sigma, seed=100 + i, visit=i,
-                      **{k: v for k, v in VARIANTS[i].items() if k != "psf"})
+        make_exposure(
+            cell.center_sky,
+            shape=(200, 200),
+            noise_sigma=sigma,
+            seed=100 + i,
+            visit=i,
+            **{k: v for k, v in VARIANTS[i].items() if k != "psf"},
+        )
         for i in range(len(VARIANTS))
     ]
     coadd = build_cell(cell, exposures, config, seed=5)
@@ -165,7 +183,10 @@ def test_pure_noise_realizations_match_the_image_noise(tract):
     def stats(a):
         a = a - a.mean()
         var = a.var()
-        lag = lambda dx, dy: np.mean(a[dy:, dx:] * a[: a.shape[0] - dy, : a.shape[1] - dx]) / var
+
+        def lag(dx, dy):
+            return np.mean(a[dy:, dx:] * a[: a.shape[0] - dy, : a.shape[1] - dx]) / var
+
         return np.array([var, lag(1, 0), lag(0, 1), lag(1, 1)])
 
     image_stats = stats(planes[0])
@@ -184,14 +205,21 @@ def test_pure_noise_realizations_match_the_image_noise(tract):
 
 def test_overlapping_cells_share_the_noise(tract):
     left, right = tract.cell(0, 0), tract.cell(1, 0)
-    center = tract.pixel_to_sky(*[float(v) for v in left.outer_bbox.intersection(
-        right.outer_bbox).shape[::-1]])  # any position; recomputed below
+    center = tract.pixel_to_sky(
+        *[float(v) for v in left.outer_bbox.intersection(right.outer_bbox).shape[::-1]]
+    )  # any position; recomputed below
     overlap = left.outer_bbox.intersection(right.outer_bbox)
     mid = tract.pixel_to_sky([(overlap.x_start + overlap.x_stop) / 2], [left.center[1]])
     center = (float(mid[0][0]), float(mid[1][0]))
     exposures = [
-        make_exposure(center, shape=(200, 200), visit=i, noise_sigma=1.0, seed=i,
-                      **{k: v for k, v in VARIANTS[i].items() if k != "psf"})
+        make_exposure(
+            center,
+            shape=(200, 200),
+            visit=i,
+            noise_sigma=1.0,
+            seed=i,
+            **{k: v for k, v in VARIANTS[i].items() if k != "psf"},
+        )
         for i in range(2)
     ]
     a = build_cell(left, exposures, BUILD, seed=9)
@@ -219,8 +247,12 @@ def patch_inputs(tract):
     center = tract.pixel_to_sky([39.5], [39.5])
     exposures = [
         make_exposure(
-            (float(center[0][0]), float(center[1][0])), shape=(260, 260), visit=i,
-            noise_sigma=1.0, seed=i, **{k: v for k, v in VARIANTS[i].items() if k != "psf"},
+            (float(center[0][0]), float(center[1][0])),
+            shape=(260, 260),
+            visit=i,
+            noise_sigma=1.0,
+            seed=i,
+            **{k: v for k, v in VARIANTS[i].items() if k != "psf"},
         )
         for i in range(2)
     ]
@@ -244,9 +276,12 @@ def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
 def test_patch_identical_on_a_dask_cluster(tract, patch_inputs):
     distributed = pytest.importorskip("distributed")
     exposures, serial = patch_inputs
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-    ) as cluster, distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         on_dask = build_patch(
             tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=client
         )

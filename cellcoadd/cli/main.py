@@ -15,6 +15,7 @@ from cellcoadd.cli.analyze import analyze
 from cellcoadd.cli.build import build
 from cellcoadd.cli.geometry import locate, skymap
 from cellcoadd.cli.simulate import simulate
+from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -32,7 +33,16 @@ def cli(debug: bool) -> None:
     """
 
 
-for command in (skymap, locate, simulate, build, analyze):
+for command in (
+    skymap,
+    locate,
+    simulate,
+    build,
+    info_command,
+    convert_command,
+    schemas_command,
+    analyze,
+):
     cli.add_command(command)
 
 

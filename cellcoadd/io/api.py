@@ -1,0 +1,205 @@
+"""Reading and writing patch coadds: one API for the FITS and HDF5 layouts.
+
+The layout follows the file name: ``.fits`` and ``.fits.fz`` (fitsio), ``.h5`` and
+``.hdf5`` (h5py). Writes are atomic: the file is written to a hidden temporary file in the
+target directory (``.<name>.tmp-<random>``), flushed to disk and renamed over the target,
+so readers see either the previous file or the complete new one. A process killed
+mid-write can leave such a temporary file behind; it is safe to delete.
+
+Every read verifies checksums by default and raises
+:class:`~cellcoadd.io.errors.CellCoaddFormatError` for anything that is not an intact
+cellcoadd file of a supported major version.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+from cellcoadd.io.common import CoaddFile, reading_errors
+from cellcoadd.io.fits_format import FitsCoaddFile, check_fits_path, write_fits
+from cellcoadd.io.hdf5_format import Hdf5CoaddFile, write_hdf5
+from cellcoadd.model.cell_coadd import CellCoadd
+from cellcoadd.model.patch_coadd import PatchCoadd
+
+Compression = Literal["none", "lossless"]
+FileFormat = Literal["fits", "hdf5"]
+
+#: File name endings -> layout, longest first so ``.fits.fz`` wins over ``.fz``.
+SUPPORTED_EXTENSIONS: dict[str, FileFormat] = {
+    ".fits.fz": "fits",
+    ".fits": "fits",
+    ".hdf5": "hdf5",
+    ".h5": "hdf5",
+}
+
+_WRITERS: dict[FileFormat, Callable[..., None]] = {"fits": write_fits, "hdf5": write_hdf5}
+_READERS: dict[FileFormat, type[CoaddFile]] = {"fits": FitsCoaddFile, "hdf5": Hdf5CoaddFile}
+
+
+def file_format(path: str | os.PathLike[str]) -> FileFormat:
+    """Layout implied by the name of ``path`` (ValueError naming the supported endings)."""
+    name = os.fspath(path).lower()
+    for ending, layout in SUPPORTED_EXTENSIONS.items():
+        if name.endswith(ending):
+            return layout
+    raise ValueError(
+        f"{os.fspath(path)}: unsupported file name; use one of {', '.join(SUPPORTED_EXTENSIONS)}"
+    )
+
+
+def _use_compression(path: str, compression: str | None) -> bool:
+    tile_compressed_name = path.lower().endswith(".fits.fz")
+    if compression is None:
+        return tile_compressed_name
+    if compression not in ("none", "lossless"):
+        raise ValueError(
+            f"compression must be None, 'none' or 'lossless' (pixels are never quantised), "
+            f"got {compression!r}"
+        )
+    if compression == "none" and tile_compressed_name:
+        raise ValueError(f"{path}: .fits.fz files are tile compressed; use a .fits name instead")
+    return compression == "lossless"
+
+
+def write(
+    patch_coadd: PatchCoadd,
+    path: str | os.PathLike[str],
+    *,
+    compression: Compression | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a patch coadd atomically.
+
+    Parameters
+    ----------
+    patch_coadd : PatchCoadd
+        What to write.
+    path : path-like
+        Target; its ending selects the layout (see :data:`SUPPORTED_EXTENSIONS`).
+    compression : {None, "none", "lossless"}
+        ``"lossless"``: tile compression (FITS) or shuffle + gzip (HDF5), bit-exact.
+        ``None``: lossless for ``.fits.fz`` names, uncompressed otherwise.
+    overwrite : bool
+        Replace an existing file (FileExistsError otherwise).
+
+    Returns
+    -------
+    Path
+        The path written.
+    """
+    if not isinstance(patch_coadd, PatchCoadd):
+        raise TypeError(f"expected a PatchCoadd, got {type(patch_coadd).__name__}")
+    target = Path(os.fspath(path))
+    layout = file_format(target)
+    compress = _use_compression(str(target), compression)
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
+    directory = target.parent
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: no such directory")
+    temporary = directory / f".{target.name}.tmp-{secrets.token_hex(8)}"
+    if layout == "fits":
+        check_fits_path(str(temporary))
+    try:
+        _WRITERS[layout](patch_coadd, str(temporary), compress=compress)
+        _fsync_file(temporary)
+        _publish(temporary, target, overwrite=overwrite)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    _fsync_directory(directory)
+    return target
+
+
+def _publish(temporary: Path, target: Path, *, overwrite: bool) -> None:
+    if overwrite:
+        os.replace(temporary, target)
+        return
+    # A hard link fails if the target appeared meanwhile, so nothing is clobbered.
+    try:
+        os.link(temporary, target)
+    except FileExistsError:
+        raise FileExistsError(f"{target} exists; pass overwrite=True to replace it") from None
+    except OSError:
+        if target.exists():
+            raise FileExistsError(f"{target} exists; pass overwrite=True to replace it") from None
+        os.replace(temporary, target)  # file systems without hard links
+        return
+    temporary.unlink()
+
+
+def _fsync_file(path: Path) -> None:
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def _fsync_directory(directory: Path) -> None:
+    # Makes the rename durable; not every platform can open a directory.
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
+    """Open a patch file lazily: ``.metadata``, ``.cell_indices``, ``.read_cell(index)``,
+    ``.read_inputs()``; use as a context manager or call ``.close()``.
+
+    Parameters
+    ----------
+    verify : bool
+        Verify checksums of what is read (FITS CHECKSUM/DATASUM, HDF5 metadata SHA-256;
+        HDF5 Fletcher-32 checksums are always verified by the library).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    CellCoaddFormatError
+        ``path`` is not an intact cellcoadd patch file of a supported major version.
+    """
+    name = os.fspath(path)
+    return _READERS[file_format(name)](name, verify=verify)
+
+
+def read(path: str | os.PathLike[str], *, verify: bool = True) -> PatchCoadd:
+    """Read a whole patch coadd (see :func:`open` for ``verify`` and errors)."""
+    with open(path, verify=verify) as coadd_file:
+        cells = {index: coadd_file.read_cell(index) for index in coadd_file.cell_indices}
+        with reading_errors(coadd_file.path, "assembling the patch"):
+            return PatchCoadd(coadd_file.metadata, cells)
+
+
+def read_cell(
+    path: str | os.PathLike[str], index: tuple[int, int], *, verify: bool = True
+) -> CellCoadd:
+    """Read one cell, touching only that cell's data (KeyError if the file lacks it)."""
+    with open(path, verify=verify) as coadd_file:
+        return coadd_file.read_cell(index)
+
+
+def convert(
+    source: str | os.PathLike[str],
+    destination: str | os.PathLike[str],
+    *,
+    compression: Compression | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Copy a patch file into another layout or compression, losslessly."""
+    file_format(destination)  # fail on a bad name before reading anything
+    if Path(os.fspath(destination)).exists() and not overwrite:
+        raise FileExistsError(f"{os.fspath(destination)} exists; pass overwrite=True to replace it")
+    return write(read(source), destination, compression=compression, overwrite=overwrite)

@@ -1,0 +1,311 @@
+"""FITS layout of a patch coadd (fitsio). See ``docs/format.md`` for the full description.
+
+HDU 0 (primary, no data) carries the identification and version keywords, HDU 1
+``METADATA`` the metadata JSON as a uint8 image, HDU 2 ``CELLINDEX`` one row per cell
+(index, HDU numbers of its planes, identity JSON), then one HDU per (cell, plane) named
+``CELL_<+cx>_<+cy>_<PLANE>``. Every HDU carries CHECKSUM/DATASUM.
+
+With lossless compression the float32 planes are tile-compressed (GZIP_2) as int32 images
+holding their IEEE-754 bit patterns (keyword ``CCBITS = 'FLOAT32'``): CFITSIO replaces every
+non-finite float by one NaN when tile-compressing floats, which would lose infinities and
+NaN payloads. The mask is RICE_1 compressed; the float64 PSF, the tables and the metadata
+are never compressed.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from cellcoadd.io import common
+from cellcoadd.io.errors import CellCoaddFormatError
+from cellcoadd.model.cell_coadd import CellCoadd, wcs_to_record
+from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+
+_FLOAT_PLANES = ("image", "variance", "mfrac", "noise")
+_HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*common.PLANES, "inputs")}
+_FIRST_CELL_HDU = 3
+_FITS_MAGIC = b"SIMPLE  ="
+
+
+def check_fits_path(path: str) -> str:
+    """Refuse paths that CFITSIO would parse as extended file-name syntax, not as a file.
+
+    CFITSIO reads ``name(template)``, ``name[filter]`` and ``scheme://`` specially (it would
+    silently write or read a different file), so such FITS paths raise ValueError.
+    """
+    if any(char in path for char in "[]()") or "://" in path:
+        raise ValueError(
+            f"{path}: FITS paths must not contain '[', ']', '(', ')' or '://' "
+            "(CFITSIO would read them as extended file-name syntax)"
+        )
+    return path
+
+
+def extname(index: tuple[int, int], plane: str) -> str:
+    """EXTNAME of a cell plane, e.g. ``CELL_+03_-01_IMAGE``."""
+    return f"CELL_{index[0]:+03d}_{index[1]:+03d}_{plane.upper()}"
+
+
+def _cell_planes(n_noise: int) -> list[str]:
+    planes = ["image", "mask", "variance", "mfrac", "psf", "inputs"]
+    if n_noise > 0:
+        planes.insert(4, "noise")  # no zero-size images in FITS: K = 0 has no NOISE HDU
+    return planes
+
+
+def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
+    """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists)."""
+    check_fits_path(path)
+    payload, version = common.metadata_payload(patch.metadata)
+    indices = list(patch.cells)
+    planes = _cell_planes(patch.metadata.n_noise)
+    n_hdu = _FIRST_CELL_HDU + len(planes) * len(indices)
+    meta = patch.metadata
+    with fitsio.FITS(path, "rw", clobber=True) as fits:
+        fits.write(
+            None,
+            header=[
+                {"name": "CCFORMAT", "value": common.FILE_KIND, "comment": "cellcoadd file kind"},
+                {"name": "CCVERS", "value": version, "comment": "format version MAJOR.MINOR"},
+                {"name": "TRACT", "value": meta.tract, "comment": "tract number"},
+                {"name": "PATCH_X", "value": meta.patch[0], "comment": "patch index x"},
+                {"name": "PATCH_Y", "value": meta.patch[1], "comment": "patch index y"},
+                {"name": "NCELLS", "value": len(indices), "comment": "cells in this file"},
+                {"name": "NHDU", "value": n_hdu, "comment": "HDUs in this file"},
+                {"name": "SOFTVERS", "value": meta.software_version, "comment": "built by"},
+            ],
+        )
+        fits[-1].write_checksum()
+        _write_image(
+            fits,
+            np.frombuffer(payload, dtype=np.uint8),
+            "METADATA",
+            [{"name": "METASHA", "value": common.sha256_hex(payload), "comment": "SHA-256"}],
+        )
+        fits.write(_index_table(patch, planes), extname="CELLINDEX")
+        fits[-1].write_checksum()
+        for index in indices:
+            _write_cell(fits, patch.cells[index], compress=compress)
+
+
+def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
+    records = [common.cell_record_json(cell) for cell in patch.cells.values()]
+    width = max([1, *(len(text) for text in records)])
+    dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
+    dtype += [(column, "<i4") for column in _HDU_COLUMNS.values()]
+    dtype += [("CELL", f"S{width}")]
+    table = np.zeros(len(records), dtype=dtype)
+    for row, (index, text) in enumerate(zip(patch.cells, records, strict=True)):
+        first = _FIRST_CELL_HDU + row * len(planes)
+        table[row]["CELL_X"], table[row]["CELL_Y"] = index
+        for plane, column in _HDU_COLUMNS.items():
+            table[row][column] = first + planes.index(plane) if plane in planes else -1
+        table[row]["CELL"] = text.encode("ascii")
+    return table
+
+
+def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
+    keys = [
+        {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
+        {"name": "CELL_Y", "value": cell.index[1], "comment": "tract-global cell index y"},
+    ]
+    for plane in _cell_planes(cell.n_noise):
+        name = extname(cell.index, plane)
+        plane_keys = [*keys, {"name": "PLANE", "value": plane}]
+        if plane == "inputs":
+            fits.write(common.inputs_to_array(cell.inputs, ascii_only=True), extname=name)
+            fits[-1].write_keys(plane_keys)
+            fits[-1].write_checksum()
+            continue
+        data = getattr(cell, plane)
+        if plane == "image":
+            # Standard WCS cards so viewers can place the image; the exact WCS is in CELLINDEX.
+            plane_keys += _wcs_cards(cell)
+        if compress and plane in _FLOAT_PLANES:
+            plane_keys.append({"name": "CCBITS", "value": "FLOAT32", "comment": "int32 = bits"})
+            _write_image(fits, data.view(np.int32), name, plane_keys, compress="GZIP_2")
+        elif compress and plane == "mask":
+            _write_image(fits, data, name, plane_keys, compress="RICE_1")
+        else:
+            _write_image(fits, data, name, plane_keys)
+
+
+def _wcs_cards(cell: CellCoadd) -> list[dict[str, Any]]:
+    return [
+        {"name": key, "value": value}
+        for key, value in wcs_to_record(cell.wcs)["header"]
+        if key not in ("COMMENT", "HISTORY", "")
+    ]
+
+
+def _write_image(
+    fits: fitsio.FITS,
+    data: np.ndarray,
+    name: str,
+    keys: list[dict[str, Any]],
+    compress: str | None = None,
+) -> None:
+    options: dict[str, Any] = {}
+    if compress is not None:
+        options = {"compress": compress, "tile_dims": data.shape, "qlevel": None}
+    # Create then write: fitsio's one-step write maps all non-finite floats to one NaN.
+    fits.create_image_hdu(dims=data.shape, dtype=data.dtype, extname=name, **options)
+    hdu = fits[-1]
+    hdu.write(np.ascontiguousarray(data))
+    hdu.write_keys(keys)
+    hdu.write_checksum()
+
+
+class FitsCoaddFile(common.CoaddFile):
+    """Lazy reader of the FITS layout (see the module docstring)."""
+
+    format_name = "fits"
+
+    def __init__(self, path: str, *, verify: bool = True) -> None:
+        check_fits_path(path)
+        size = common.check_path_readable(path)
+        with open(path, "rb") as stream:
+            if stream.read(len(_FITS_MAGIC)) != _FITS_MAGIC:
+                raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
+        self.path = path
+        self.verify = verify
+        with common.reading_errors(path, "cannot open the FITS file"):
+            self._fits = fitsio.FITS(path)
+        try:
+            metadata, rows = self._read_header_part(path, size)
+        except BaseException:
+            self._fits.close()
+            raise
+        self._rows = rows
+        super().__init__(path, metadata, list(rows))
+
+    def _read_header_part(
+        self, path: str, size: int
+    ) -> tuple[PatchMetadata, dict[tuple[int, int], np.void]]:
+        with common.reading_errors(path, "reading the primary header"):
+            n_found = len(self._fits)
+            primary = self._fits[0].read_header()
+            kind = primary.get("CCFORMAT")
+            if kind != common.FILE_KIND:
+                raise CellCoaddFormatError(
+                    path, f"not a cellcoadd patch file (CCFORMAT = {kind!r})"
+                )
+            version = str(primary.get("CCVERS"))
+            common.check_format_version(path, version)
+            n_hdu = int(primary["NHDU"])
+        if n_found != n_hdu:
+            raise CellCoaddFormatError(
+                path, f"the file has {n_found} HDUs, its header says {n_hdu}: truncated?"
+            )
+        with common.reading_errors(path, "checking the file length"):
+            end = self._fits[n_hdu - 1].get_offsets()["data_end"]
+        if end != size:
+            raise CellCoaddFormatError(
+                path, f"the last HDU ends at byte {end} but the file has {size} bytes"
+            )
+        self._verify_hdu(0, "PRIMARY")
+        hdu = self._hdu(1, "METADATA")
+        with common.reading_errors(path, "reading the metadata"):
+            dims = hdu.get_dims()
+            if len(dims) != 1 or not 0 < dims[0] <= common.MAX_METADATA_BYTES:
+                raise ValueError(f"METADATA has dimensions {dims}")
+            payload = hdu.read().astype(np.uint8, copy=False).tobytes()
+            digest = hdu.read_header().get("METASHA")
+            if digest != common.sha256_hex(payload):
+                raise CellCoaddFormatError(path, "metadata SHA-256 mismatch: corrupted metadata")
+            metadata = common.decode_metadata(path, payload, version)
+        hdu = self._hdu(2, "CELLINDEX")
+        with common.reading_errors(path, "reading the cell index"):
+            table = hdu.read()
+            rows = {(int(r["CELL_X"]), int(r["CELL_Y"])): r for r in table}
+            if len(rows) != len(table):
+                raise ValueError("the cell index lists a cell twice")
+        return metadata, rows
+
+    def _hdu(self, number: int, name: str) -> Any:
+        """HDU ``number``, checked to be named ``name`` and (if verifying) its checksum."""
+        if not 0 <= number < len(self._fits):
+            raise CellCoaddFormatError(self.path, f"HDU {name} (number {number}) is missing")
+        with common.reading_errors(self.path, f"reading HDU {number} ({name})"):
+            found = self._fits[number].get_extname()
+        if found != name:
+            raise CellCoaddFormatError(self.path, f"HDU {number} is {found!r}, expected {name!r}")
+        self._verify_hdu(number, name)
+        return self._fits[number]
+
+    def _verify_hdu(self, number: int, name: str) -> None:
+        if not self.verify:
+            return
+        with common.reading_errors(self.path, f"checksum of HDU {number} {name}".rstrip()):
+            self._fits[number].verify_checksum()
+
+    def _row(self, index: tuple[int, int]) -> tuple[tuple[int, int], np.void]:
+        key = self._check_index(index)
+        return key, self._rows[key]
+
+    def read_cell(self, index: tuple[int, int]) -> CellCoadd:
+        key, row = self._row(index)
+        with common.reading_errors(self.path, f"cell {key} identity"):
+            identity = common.parse_cell_record(row["CELL"])
+        if identity["index"] != key or identity["tract"] != self.metadata.tract:
+            raise CellCoaddFormatError(
+                self.path,
+                f"cell index row {key} describes cell {identity['index']} of tract "
+                f"{identity['tract']}",
+            )
+        shapes = common.expected_shapes(self.metadata, identity["outer_bbox"])
+        planes = {}
+        for plane in common.PLANES:
+            number = int(row[_HDU_COLUMNS[plane]])
+            if plane == "noise" and self.metadata.n_noise == 0 and number == -1:
+                planes[plane] = np.zeros(shapes["noise"], dtype=np.float32)
+                continue
+            planes[plane] = self._read_plane(key, plane, number, shapes[plane])
+        inputs = self._read_inputs_hdu(key, int(row[_HDU_COLUMNS["inputs"]]))
+        with common.reading_errors(self.path, f"cell {key} contents"):
+            return CellCoadd(**planes, inputs=inputs, **identity)
+
+    def _read_plane(
+        self, key: tuple[int, int], plane: str, number: int, shape: tuple[int, ...]
+    ) -> np.ndarray:
+        hdu = self._hdu(number, extname(key, plane))
+        with common.reading_errors(self.path, f"cell {key} plane {plane}"):
+            dims = tuple(hdu.get_dims())
+            if dims != shape:
+                raise ValueError(f"dimensions {dims}, expected {shape}")
+            as_bits = hdu.read_header().get("CCBITS") == "FLOAT32"
+            data = hdu.read()
+            expected = np.dtype({"mask": np.int32, "psf": np.float64}.get(plane, np.float32))
+            if as_bits:
+                if data.dtype.kind != "i" or data.itemsize != 4 or plane not in _FLOAT_PLANES:
+                    raise ValueError(f"CCBITS on a {data.dtype} {plane} plane")
+                # Native byte order first, then reinterpret the bits.
+                data = data.astype(np.int32, copy=False).view(np.float32)
+            if (data.dtype.kind, data.itemsize) != (expected.kind, expected.itemsize):
+                raise ValueError(f"dtype {data.dtype}, expected {expected}")
+            return data
+
+    def _read_inputs_hdu(self, key: tuple[int, int], number: int) -> list[InputRecord]:
+        hdu = self._hdu(number, extname(key, "inputs"))
+        with common.reading_errors(self.path, f"cell {key} inputs"):
+            return common.inputs_from_array(hdu.read(), ascii_only=True)
+
+    def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:
+        key, row = self._row(index)
+        return self._read_inputs_hdu(key, int(row[_HDU_COLUMNS["inputs"]]))
+
+    def close(self) -> None:
+        fits = getattr(self, "_fits", None)
+        if fits is not None:
+            fits.close()
+            self._fits = None
+
+
+def open_fits(path: str | os.PathLike[str], *, verify: bool = True) -> FitsCoaddFile:
+    """Open a FITS patch file lazily."""
+    return FitsCoaddFile(os.fspath(path), verify=verify)

@@ -1,0 +1,150 @@
+"""One record per input exposure that overlaps a cell: what was used, what was rejected and why."""
+
+from __future__ import annotations
+
+import struct
+import unicodedata
+from typing import Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+#: Status of an input in a cell: ``"used"`` or the reason it was rejected. Extend by
+#: appending a reason here; stored files then need a major format version bump, because
+#: older readers cannot represent the new value.
+InputStatus = Literal[
+    "used",
+    "no_overlap",
+    "edge",
+    "masked_fraction",
+    "bad_weight",
+    "bad_psf",
+    "bad_pixels",
+    "band_mismatch",
+]
+
+#: Every valid status, ``"used"`` first.
+INPUT_STATUSES: tuple[str, ...] = get_args(InputStatus)
+
+#: The statuses that mean "rejected", in declaration order.
+REJECTION_REASONS: tuple[str, ...] = INPUT_STATUSES[1:]
+
+_FLOAT_FIELDS = (
+    "weight",
+    "overlap_fraction",
+    "psf_fwhm",
+    "psf_e1",
+    "psf_e2",
+    "psf_T",
+    "zero_point",
+)
+
+
+def check_band_name(band: str) -> str:
+    """Validate a filter name: non-empty, no surrounding whitespace, no control characters.
+
+    Any other Unicode is allowed (e.g. ``"y\\u00b2"``). Surrounding whitespace is refused
+    because fixed-width FITS strings cannot keep it.
+    """
+    if not band:
+        raise ValueError("band must be a non-empty string")
+    if band != band.strip():
+        raise ValueError(f"band {band!r} must not start or end with whitespace")
+    if any(unicodedata.category(char).startswith("C") for char in band):
+        raise ValueError(f"band {band!r} must not contain control or unassigned characters")
+    return band
+
+
+class InputRecord(BaseModel):
+    """One input exposure (visit, detector) considered for one cell.
+
+    Parameters
+    ----------
+    visit, detector : int
+        Identity of the input exposure.
+    band : str
+        Filter of the exposure (Unicode allowed; see :func:`check_band_name`).
+    weight : float
+        Coadd weight, ``1 / background variance`` at the common zero point (>= 0, finite);
+        0 exactly when the input was rejected, > 0 when it was used.
+    status : str
+        ``"used"`` or the rejection reason, one of :data:`REJECTION_REASONS`.
+    overlap_fraction : float
+        Fraction (0..1) of the cell's outer box covered by the exposure's valid box.
+    psf_fwhm : float
+        PSF full width at half maximum, arcsec (NaN when it could not be measured).
+    psf_e1, psf_e2 : float
+        PSF ellipticity from adaptive second moments (NaN allowed).
+    psf_T : float
+        PSF size ``T = Ixx + Iyy`` from adaptive moments, arcsec^2 (NaN allowed).
+    zero_point : float
+        Photometric zero point of the exposure, mag (NaN allowed).
+
+    Notes
+    -----
+    Records compare with ``==`` field by field, so two records holding NaN are never
+    equal; :meth:`identical` compares floats bit for bit instead.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
+
+    visit: int
+    detector: int
+    band: str
+    weight: float = Field(ge=0.0, allow_inf_nan=False)
+    status: InputStatus
+    overlap_fraction: float = Field(ge=0.0, le=1.0)
+    psf_fwhm: float = Field(description="arcsec")
+    psf_e1: float
+    psf_e2: float
+    psf_T: float = Field(description="arcsec^2")
+    zero_point: float = Field(description="mag")
+
+    @field_validator("band")
+    @classmethod
+    def _check_band(cls, band: str) -> str:
+        return check_band_name(band)
+
+    @model_validator(mode="after")
+    def _check_weight_matches_status(self) -> InputRecord:
+        if self.status == "used" and not self.weight > 0.0:
+            raise ValueError(
+                f"input (visit={self.visit}, detector={self.detector}) is used but has "
+                f"weight {self.weight}; a used input needs a positive weight"
+            )
+        if self.status != "used" and self.weight != 0.0:
+            raise ValueError(
+                f"input (visit={self.visit}, detector={self.detector}) was rejected "
+                f"({self.status}) but has weight {self.weight}; rejected inputs have weight 0"
+            )
+        return self
+
+    @property
+    def is_used(self) -> bool:
+        """Whether the input contributed to the cell."""
+        return self.status == "used"
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """``(visit, detector)``."""
+        return (self.visit, self.detector)
+
+    def identical(self, other: InputRecord) -> bool:
+        """Whether every field is equal, comparing floats bit for bit (so NaN matches NaN)."""
+        if not isinstance(other, InputRecord):
+            return False
+        if (self.visit, self.detector, self.band, self.status) != (
+            other.visit,
+            other.detector,
+            other.band,
+            other.status,
+        ):
+            return False
+        return all(
+            _float_bits(getattr(self, name)) == _float_bits(getattr(other, name))
+            for name in _FLOAT_FIELDS
+        )
+
+
+def _float_bits(value: float) -> bytes:
+    # NaN payloads and -0.0 survive a round trip, so compare the IEEE-754 bytes.
+    return struct.pack("<d", value)

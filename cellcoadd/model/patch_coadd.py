@@ -1,0 +1,330 @@
+"""All cells of one patch with the metadata they share, and stitching of their inner regions."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator, Mapping
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from cellcoadd._version import __version__
+from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.model.cell_coadd import CellCoadd, CellCoaddError
+from cellcoadd.model.inputs import check_band_name
+from cellcoadd.model.maskbits import MaskBits
+
+#: Version ``"MAJOR.MINOR"`` of the stored data model and file layouts. A major bump means
+#: readers of older majors cannot read the files (they refuse them); a minor bump only adds
+#: (fields, datasets, keywords), so readers of the same major read newer minors.
+FORMAT_VERSION = "1.0"
+
+_VERSION_PATTERN = re.compile(r"^(\d+)\.(\d+)$")
+
+Plane = Literal["image", "mask", "variance", "mfrac", "noise"]
+
+
+def parse_format_version(version: str) -> tuple[int, int]:
+    """``(major, minor)`` of a ``"MAJOR.MINOR"`` string (ValueError if malformed)."""
+    match = _VERSION_PATTERN.match(version)
+    if match is None:
+        raise ValueError(f"format version {version!r} is not of the form MAJOR.MINOR")
+    return int(match.group(1)), int(match.group(2))
+
+
+class PatchMetadata(BaseModel):
+    """Metadata shared by all cells of a patch (frozen; stored as JSON in every file).
+
+    Parameters
+    ----------
+    skymap_config : SkyMapConfig
+        Geometry of the sky map (cell and patch sizes, pixel scale).
+    tract : int
+        Tract number.
+    tract_center : (float, float)
+        ``(ra, dec)`` of the tract's tangent point, deg.
+    patch : (int, int)
+        Patch index ``(px, py)`` inside the tract.
+    band : str
+        Filter name (Unicode allowed).
+    units : str
+        Units of the image plane, e.g. ``"nJy"`` or ``"counts at zero point 30"``.
+    mask_bits : MaskBits
+        Names of the mask bits; must define ``NO_DATA``.
+    build_config : BuildConfig
+        How the cells were built; the source of :attr:`n_noise` and :attr:`psf_size`.
+    software_version : str
+        cellcoadd version that built the coadd.
+    format_version : str
+        ``"MAJOR.MINOR"`` of the data model (:data:`FORMAT_VERSION` when created).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    skymap_config: SkyMapConfig
+    tract: int = Field(ge=0)
+    tract_center: tuple[float, float] = Field(description="(ra, dec) of the tangent point, deg")
+    patch: tuple[int, int]
+    band: str
+    units: str = Field(min_length=1)
+    mask_bits: MaskBits = Field(default_factory=MaskBits)
+    build_config: BuildConfig = Field(default_factory=BuildConfig)
+    software_version: str = __version__
+    format_version: str = FORMAT_VERSION
+
+    @field_validator("band")
+    @classmethod
+    def _check_band(cls, band: str) -> str:
+        return check_band_name(band)
+
+    @field_validator("tract_center")
+    @classmethod
+    def _check_center(cls, center: tuple[float, float]) -> tuple[float, float]:
+        ra, dec = center
+        if not (math.isfinite(ra) and 0.0 <= ra < 360.0 and math.isfinite(dec)):
+            raise ValueError(f"tract_center ra must be in [0, 360) deg, got {ra}")
+        if not -90.0 <= dec <= 90.0:
+            raise ValueError(f"tract_center dec must be in [-90, 90] deg, got {dec}")
+        return center
+
+    @field_validator("format_version")
+    @classmethod
+    def _check_version(cls, version: str) -> str:
+        parse_format_version(version)
+        return version
+
+    @field_validator("mask_bits")
+    @classmethod
+    def _check_no_data(cls, mask_bits: MaskBits) -> MaskBits:
+        if "NO_DATA" not in mask_bits.bits:
+            raise ValueError("mask_bits must define NO_DATA (it flags pixels without data)")
+        return mask_bits
+
+    @model_validator(mode="after")
+    def _check_patch(self) -> PatchMetadata:
+        n = self.skymap_config.patches_per_tract
+        if not all(0 <= p < n for p in self.patch):
+            raise ValueError(f"patch {self.patch} is outside the tract's {n} x {n} patches")
+        return self
+
+    @property
+    def n_noise(self) -> int:
+        """Number ``K`` of noise realizations per cell (from ``build_config``)."""
+        return self.build_config.n_noise
+
+    @property
+    def psf_size(self) -> int:
+        """Side of the PSF stamp, pixels (from ``build_config``)."""
+        return self.build_config.psf_size
+
+    @property
+    def cell_inner(self) -> int:
+        """Side of a cell's inner box, pixels."""
+        return self.skymap_config.cell_inner
+
+    @property
+    def cell_border(self) -> int:
+        """Border added on each side of a cell's inner box, pixels."""
+        return self.skymap_config.cell_border
+
+    @property
+    def cell_outer(self) -> int:
+        """Side of a cell's outer box, pixels."""
+        return self.skymap_config.cell_outer
+
+    @property
+    def format_major(self) -> int:
+        return parse_format_version(self.format_version)[0]
+
+    @property
+    def patch_inner_bbox(self) -> Box:
+        """The patch's inner box in tract pixels (tiled by its inner cells' inner boxes)."""
+        side = self.skymap_config.patch_inner
+        px, py = self.patch
+        return Box(
+            x_start=px * side, x_stop=(px + 1) * side, y_start=py * side, y_stop=(py + 1) * side
+        )
+
+    @property
+    def inner_cell_indices(self) -> list[tuple[int, int]]:
+        """Tract-global indices of the inner cells, row by row (``cy`` outer, ``cx`` inner)."""
+        return self._cell_range(0)
+
+    @property
+    def all_cell_indices(self) -> list[tuple[int, int]]:
+        """Indices of the inner cells and the ``patch_border_cells`` rings around them."""
+        return self._cell_range(self.skymap_config.patch_border_cells)
+
+    def _cell_range(self, border: int) -> list[tuple[int, int]]:
+        n = self.skymap_config.cells_per_patch
+        px, py = self.patch
+        xs = range(px * n - border, (px + 1) * n + border)
+        ys = range(py * n - border, (py + 1) * n + border)
+        return [(cx, cy) for cy in ys for cx in xs]
+
+    def cell_boxes(self, index: tuple[int, int]) -> tuple[Box, Box]:
+        """``(inner, outer)`` boxes of cell ``index`` implied by the sky-map configuration."""
+        cx, cy = index
+        side = self.cell_inner
+        inner = Box(
+            x_start=cx * side, x_stop=(cx + 1) * side, y_start=cy * side, y_stop=(cy + 1) * side
+        )
+        return inner, inner.grow(self.cell_border)
+
+
+class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
+    """The cells (inner and border) of one patch, read-only mapping ``(cx, cy) -> CellCoadd``.
+
+    Parameters
+    ----------
+    metadata : PatchMetadata
+        Shared metadata.
+    cells : mapping (cx, cy) -> CellCoadd
+        Cells of the patch; any may be missing. Each must belong to the patch
+        (:attr:`PatchMetadata.all_cell_indices`), be stored under its own index, lie in the
+        metadata's tract, have the boxes implied by the sky map, ``n_noise`` realizations,
+        a ``psf_size`` stamp and only named mask bits; an empty cell must have ``NO_DATA``
+        set in every mask pixel.
+
+    Examples
+    --------
+    >>> cell = patch_coadd[3, 4]              # doctest: +SKIP
+    >>> image = patch_coadd.stitch("image")   # doctest: +SKIP
+    """
+
+    def __init__(self, metadata: PatchMetadata, cells: Mapping[tuple[int, int], CellCoadd]) -> None:
+        if not isinstance(metadata, PatchMetadata):
+            raise TypeError(f"metadata must be a PatchMetadata, got {type(metadata).__name__}")
+        self.metadata = metadata
+        allowed = set(metadata.all_cell_indices)
+        no_data = metadata.mask_bits.value("NO_DATA")
+        checked: dict[tuple[int, int], CellCoadd] = {}
+        for key, cell in cells.items():
+            key = (int(key[0]), int(key[1]))
+            if not isinstance(cell, CellCoadd):
+                raise CellCoaddError(f"cell {key}: expected a CellCoadd, got {type(cell).__name__}")
+            if cell.index != key:
+                raise CellCoaddError(f"cell stored under {key} has index {cell.index}")
+            if key not in allowed:
+                raise CellCoaddError(
+                    f"cell {key} is not an inner or border cell of patch {metadata.patch}"
+                )
+            if cell.tract != metadata.tract:
+                raise CellCoaddError(f"cell {key} is in tract {cell.tract}, not {metadata.tract}")
+            inner, outer = metadata.cell_boxes(key)
+            if (cell.inner_bbox, cell.outer_bbox) != (inner, outer):
+                raise CellCoaddError(
+                    f"cell {key} has boxes inner={cell.inner_bbox}, outer={cell.outer_bbox}; "
+                    f"the sky map implies inner={inner}, outer={outer}"
+                )
+            if cell.n_noise != metadata.n_noise:
+                raise CellCoaddError(
+                    f"cell {key} has {cell.n_noise} noise realizations, "
+                    f"the build config says {metadata.n_noise}"
+                )
+            if cell.psf.shape != (metadata.psf_size, metadata.psf_size):
+                raise CellCoaddError(
+                    f"cell {key} has a {cell.psf.shape} PSF stamp, expected side "
+                    f"{metadata.psf_size}"
+                )
+            unknown = metadata.mask_bits.unknown_bits(cell.mask)
+            if unknown:
+                raise CellCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
+            if cell.is_empty and not np.all(cell.mask & no_data):
+                raise CellCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
+            checked[key] = cell
+        self.cells: dict[tuple[int, int], CellCoadd] = {k: checked[k] for k in sorted(checked)}
+
+    def __getitem__(self, index: tuple[int, int]) -> CellCoadd:
+        return self.cells[index]
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        return iter(self.cells)
+
+    def __len__(self) -> int:
+        return len(self.cells)
+
+    @property
+    def inner_cell_indices(self) -> list[tuple[int, int]]:
+        """Indices of the cells whose inner boxes tile the patch inner box (present or not)."""
+        return self.metadata.inner_cell_indices
+
+    @property
+    def empty_cell_indices(self) -> list[tuple[int, int]]:
+        """Indices of the stored cells with no used input."""
+        return [key for key, cell in self.cells.items() if cell.is_empty]
+
+    @property
+    def patch_inner_bbox(self) -> Box:
+        """The region covered by :meth:`stitch`, in tract pixels."""
+        return self.metadata.patch_inner_bbox
+
+    def stitch(self, plane: Plane = "image", noise_index: int | None = None) -> np.ndarray:
+        """One contiguous array of a plane over the patch inner box, from inner-cell inner boxes.
+
+        Parameters
+        ----------
+        plane : {"image", "variance", "mfrac", "mask", "noise"}
+            Which plane.
+        noise_index : int, optional
+            Realization to stitch; required for ``plane="noise"`` only.
+
+        Returns
+        -------
+        ndarray, shape ``(cells_per_patch * cell_inner,) * 2``
+            Row 0 / column 0 is pixel ``(y_start, x_start)`` of :attr:`patch_inner_bbox`.
+            A missing or empty cell leaves NaN there (float planes) or the ``NO_DATA`` bit
+            (mask plane).
+        """
+        if plane not in ("image", "variance", "mfrac", "mask", "noise"):
+            raise ValueError(f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise")
+        if plane == "noise":
+            if noise_index is None or not 0 <= noise_index < self.metadata.n_noise:
+                raise ValueError(
+                    f"plane 'noise' needs noise_index in [0, {self.metadata.n_noise}), "
+                    f"got {noise_index}"
+                )
+        elif noise_index is not None:
+            raise ValueError(f"noise_index applies to plane 'noise' only, not {plane!r}")
+        box = self.patch_inner_bbox
+        side = self.metadata.cell_inner
+        if plane == "mask":
+            out = np.full(box.shape, self.metadata.mask_bits.value("NO_DATA"), dtype=np.int32)
+        else:
+            out = np.full(box.shape, np.nan, dtype=np.float32)
+        for index in self.inner_cell_indices:
+            cell = self.cells.get(index)
+            if cell is None or cell.is_empty:
+                continue
+            views = cell.inner
+            values = views.noise[noise_index] if plane == "noise" else getattr(views, plane)
+            x0 = index[0] * side - box.x_start
+            y0 = index[1] * side - box.y_start
+            out[y0 : y0 + side, x0 : x0 + side] = values
+        return out
+
+    def equals(self, other: object) -> bool:
+        """Whether ``other`` has equal metadata and bit-identical cells under the same indices."""
+        if not isinstance(other, PatchCoadd):
+            return False
+        if self.metadata != other.metadata or list(self.cells) != list(other.cells):
+            return False
+        return all(cell.equals(other.cells[key]) for key, cell in self.cells.items())
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PatchCoadd):
+            return NotImplemented
+        return self.equals(other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        meta = self.metadata
+        return (
+            f"PatchCoadd(tract={meta.tract}, patch={meta.patch}, band={meta.band!r}, "
+            f"cells={len(self.cells)}, empty={len(self.empty_cell_indices)})"
+        )
