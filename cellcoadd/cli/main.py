@@ -13,7 +13,9 @@ import click
 from cellcoadd._version import __version__
 from cellcoadd.cli.analyze import analyze
 from cellcoadd.cli.build import build
+from cellcoadd.cli.demo import demo
 from cellcoadd.cli.geometry import locate, skymap
+from cellcoadd.cli.inspect import show, trim
 from cellcoadd.cli.simulate import simulate
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 
@@ -34,11 +36,14 @@ def cli(debug: bool) -> None:
 
 
 for command in (
+    demo,
     skymap,
     locate,
     simulate,
     build,
     info_command,
+    show,
+    trim,
     convert_command,
     schemas_command,
     analyze,
