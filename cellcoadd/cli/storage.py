@@ -188,8 +188,9 @@ def schemas_command(out_dir: str) -> None:
     """Write the JSON Schemas of the metadata models (<Model>.v<MAJOR>.json).
 
     \b
-    Example:
+    Examples:
       cellcoadd schemas --out schemas/
+      cellcoadd schemas --out /tmp/schemas && diff -r /tmp/schemas schemas
     """
     try:
         written = write_schemas(out_dir)
