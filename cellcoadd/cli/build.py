@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import click
@@ -54,6 +55,8 @@ def build(
     from cellcoadd.io.exposure_io import read_exposure
     from cellcoadd.model.build_config import BuildConfig
 
+    if os.path.exists(out) and not overwrite:  # fail before the work, not after
+        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
     config = BuildConfig(n_noise=n_noise, psf_size=psf_size)
     the_map = load_skymap(skymap_path)
     patch = the_map[tract_id].patch(*parse_pair(patch_text))
