@@ -378,7 +378,10 @@ def test_patch_refuses_inconsistent_cells():
         attempt((4, 0))
     with pytest.raises(CellCoaddError, match="tract"):
         attempt((3, 0), tract=5)
-    far_inner, far_outer = meta.cell_boxes((9, 0))
+    # a cell beyond the tract: its boxes follow the same grid
+    side = meta.cell_inner
+    far_inner = Box(x_start=9 * side, x_stop=10 * side, y_start=0, y_stop=side)
+    far_outer = far_inner.grow(meta.cell_border)
     with pytest.raises(CellCoaddError, match="not an inner or border cell"):
         attempt((9, 0), index=(9, 0), inner_bbox=far_inner, outer_bbox=far_outer)
     shifted = good["outer_bbox"].shifted(1, 0)

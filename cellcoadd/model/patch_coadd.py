@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from functools import cached_property
 from collections.abc import Iterator, Mapping
 from typing import Literal
 
@@ -13,6 +14,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from cellcoadd._version import __version__
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.geometry.regions import NearestCenterRegion
+from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd, CellCoaddError
 from cellcoadd.model.inputs import check_band_name
@@ -140,40 +143,37 @@ class PatchMetadata(BaseModel):
     def format_major(self) -> int:
         return parse_format_version(self.format_version)[0]
 
+    @cached_property
+    def geometry(self) -> Patch:
+        """The patch as a :class:`~cellcoadd.geometry.Patch` (its tract, cells and boxes)."""
+        center = tuple(self.tract_center)
+        tract = Tract(
+            id=self.tract,
+            center=center,
+            config=self.skymap_config,
+            inner_region=NearestCenterRegion((center,), 0),
+        )
+        return tract.patch(*self.patch)
+
     @property
     def patch_inner_bbox(self) -> Box:
         """The patch's inner box in tract pixels (tiled by its inner cells' inner boxes)."""
-        side = self.skymap_config.patch_inner
-        px, py = self.patch
-        return Box(
-            x_start=px * side, x_stop=(px + 1) * side, y_start=py * side, y_stop=(py + 1) * side
-        )
+        return self.geometry.inner_bbox
 
     @property
     def inner_cell_indices(self) -> list[tuple[int, int]]:
         """Tract-global indices of the inner cells, row by row (``cy`` outer, ``cx`` inner)."""
-        return self._cell_range(0)
+        return self.geometry.inner_cell_indices
 
     @property
     def all_cell_indices(self) -> list[tuple[int, int]]:
         """Indices of the inner cells and the ``patch_border_cells`` rings around them."""
-        return self._cell_range(self.skymap_config.patch_border_cells)
-
-    def _cell_range(self, border: int) -> list[tuple[int, int]]:
-        n = self.skymap_config.cells_per_patch
-        px, py = self.patch
-        xs = range(px * n - border, (px + 1) * n + border)
-        ys = range(py * n - border, (py + 1) * n + border)
-        return [(cx, cy) for cy in ys for cx in xs]
+        return self.geometry.cell_indices
 
     def cell_boxes(self, index: tuple[int, int]) -> tuple[Box, Box]:
         """``(inner, outer)`` boxes of cell ``index`` implied by the sky-map configuration."""
-        cx, cy = index
-        side = self.cell_inner
-        inner = Box(
-            x_start=cx * side, x_stop=(cx + 1) * side, y_start=cy * side, y_stop=(cy + 1) * side
-        )
-        return inner, inner.grow(self.cell_border)
+        cell = self.geometry.tract.cell(*index)
+        return cell.inner_bbox, cell.outer_bbox
 
 
 class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
