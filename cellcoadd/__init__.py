@@ -35,6 +35,14 @@ from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
 from cellcoadd.plots import plot_patch_layout
+from cellcoadd.shear import (
+    EmptyCellError,
+    ValidationSettings,
+    measure_metacal,
+    to_ngmix,
+    to_observation,
+    validate_shear,
+)
 
 __all__ = [
     "FORMAT_VERSION",
@@ -45,6 +53,7 @@ __all__ = [
     "CellCoadd",
     "CellCoaddError",
     "CellCoaddFormatError",
+    "EmptyCellError",
     "Exposure",
     "ExposureError",
     "InputRecord",
@@ -55,18 +64,23 @@ __all__ = [
     "SkyMap",
     "SkyMapConfig",
     "Tract",
+    "ValidationSettings",
     "__version__",
     "build_cell",
     "build_patch",
     "convert",
     "flag_unique",
+    "measure_metacal",
     "open",
     "plot_patch_layout",
     "read",
     "read_cell",
     "read_exposure",
+    "to_ngmix",
+    "to_observation",
     "trim_to_cell",
     "trim_to_patch",
+    "validate_shear",
     "write",
     "write_exposure",
 ]

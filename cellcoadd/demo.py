@@ -23,8 +23,13 @@ from cellcoadd.io import api as coadd_io
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.plots import plot_cell_planes, plot_inputs_map, plot_patch_layout, plot_stitched
-from cellcoadd.shear import PAPER_CUTS, mean_shear, measure_metacal
-from cellcoadd.shear.observation import to_observation
+from cellcoadd.shear import (
+    PAPER_CUTS,
+    mean_shear,
+    measure_metacal,
+    observation_jacobian,
+    to_observation,
+)
 from cellcoadd.sim import DEMO_PATCH, FieldConfig, SimConfig, demo_skymap, simulate_field
 
 DEMO_CCD_PIXELS = 700  # CCDs of 3.15 arcmin: edges cross some cells, most cells keep most visits
@@ -121,8 +126,7 @@ def _measure_shear(coadd: PatchCoadd, truth: Table, skymap) -> dict[str, float] 
         col = int(np.floor(px + 0.5)) - cell.outer_bbox.x_start
         row = int(np.floor(py + 0.5)) - cell.outer_bbox.y_start
         cut = (slice(row - half, row + half + 1), slice(col - half, col + half + 1))
-        jac = obs["jacobian"]
-        jacobian = np.array([[jac["dudcol"], jac["dudrow"]], [jac["dvdcol"], jac["dvdrow"]]])
+        jacobian = observation_jacobian(obs)
         noise_sigma = float(np.sqrt(1.0 / obs["weight"].mean()))
         results.append(
             measure_metacal(

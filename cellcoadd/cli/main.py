@@ -16,6 +16,7 @@ from cellcoadd.cli.build import build
 from cellcoadd.cli.demo import demo
 from cellcoadd.cli.geometry import locate, skymap
 from cellcoadd.cli.inspect import show, trim
+from cellcoadd.cli.shear import validate_shear
 from cellcoadd.cli.simulate import simulate
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 
@@ -46,6 +47,7 @@ for command in (
     trim,
     convert_command,
     schemas_command,
+    validate_shear,
     analyze,
 ):
     cli.add_command(command)
