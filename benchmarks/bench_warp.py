@@ -6,6 +6,10 @@ planes per second of process CPU time (Mpix-plane/s), the median of repeated,
 interleaved runs after a warm-up call; CPU time keeps the per-core figure meaningful on a
 shared machine, and a method using several threads is charged for all of them.
 
+``cellcoadd`` is ``warp_planes`` on planes stored one after the other; ``interleaved`` is
+``accumulate_warped`` on the same planes stored pixel by pixel, the layout ``build_cell``
+uses (checked to give the same bits).
+
 References, run on the same job in the same process:
 
 * ``scipy.ndimage.map_coordinates(order=3)``: cubic B-spline, plane by plane (its spline
@@ -20,14 +24,15 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
+from functools import partial
 
 import galsim
 import numba
 import numpy as np
+from common import format_table, interleaved_medians, machine_summary
 from scipy import ndimage
 
-from cellcoadd.build.warp import warp_planes
+from cellcoadd.build.warp import accumulate_warped, warp_planes
 
 OUTPUT_SIZE = 250
 COADD_SCALE = 0.2  # arcsec / px
@@ -66,6 +71,13 @@ def warp_ours(
     return warp_planes(planes, x_src, y_src)
 
 
+def warp_ours_interleaved(
+    pixels: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, _: np.ndarray
+) -> np.ndarray:
+    out = np.zeros((pixels.shape[2], *x_src.shape))
+    return accumulate_warped(pixels, x_src, y_src, out, np.ones(pixels.shape[2]))
+
+
 def warp_scipy(
     planes: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, _: np.ndarray
 ) -> np.ndarray:
@@ -102,45 +114,52 @@ def warp_galsim(
     return result
 
 
-def median_cpu_seconds(
-    functions: dict[str, Callable[..., np.ndarray]], args: tuple, repeats: int
-) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Median process CPU time of each function; runs interleave so load drifts hit all."""
-    results = {name: function(*args) for name, function in functions.items()}  # warm-up
-    times: dict[str, list[float]] = {name: [] for name in functions}
-    for _ in range(repeats):
-        for name, function in functions.items():
-            start = time.process_time()
-            function(*args)
-            times[name].append(time.process_time() - start)
-    return {name: float(np.median(values)) for name, values in times.items()}, results
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
     numba.set_num_threads(1)  # per-core figure
 
-    methods = {"cellcoadd": warp_ours, "scipy o3": warp_scipy, "galsim L3": warp_galsim}
+    methods = {
+        "cellcoadd": warp_ours,
+        "interleaved": warp_ours_interleaved,
+        "scipy o3": warp_scipy,
+        "galsim L3": warp_galsim,
+    }
     n_pixels = OUTPUT_SIZE * OUTPUT_SIZE
     print(
-        f'{OUTPUT_SIZE}x{OUTPUT_SIZE} output, {COADD_SCALE}"/px from {EXPOSURE_SCALE}"/px '
-        f"rotated {ROTATION_DEG:g} deg; 1 numba thread; "
-        f"median CPU time of {args.repeats}"
+        f'warp: {OUTPUT_SIZE}x{OUTPUT_SIZE} output, {COADD_SCALE}"/px from {EXPOSURE_SCALE}"/px '
+        f"rotated {ROTATION_DEG:g} deg; 1 numba thread; median CPU time of {args.repeats}; "
+        f"{machine_summary()}"
     )
-    header = f"{'planes':>6} " + " ".join(f"{name:>12}" for name in methods)
-    header += f" {'ours/scipy':>11} {'ours/galsim':>12} {'|ours-gs|':>10}"
-    print(header + "\n" + " " * 7 + "rates in Mpix-plane/s; |ours-gs|: max on the smooth plane")
+    print(
+        "rates in Mpix-plane/s; interleaved: accumulate_warped, as the build calls it; "
+        "max diff gs: largest |ours - galsim| on the smooth plane\n"
+    )
+    rows = []
     for n_planes in (1, 4, 6):
         job = make_job(n_planes, seed=n_planes)
-        seconds, results = median_cpu_seconds(methods, job, args.repeats)
+        # the build's layout: all planes of an input pixel side by side
+        pixels = np.ascontiguousarray(job[0].transpose(1, 2, 0))
+        calls = {name: partial(function, *job) for name, function in methods.items()}
+        calls["interleaved"] = partial(warp_ours_interleaved, pixels, *job[1:])
+        results = {name: call() for name, call in calls.items()}  # warm-up
+        if not np.array_equal(results["interleaved"], results["cellcoadd"]):
+            raise AssertionError("the interleaved kernel differs from warp_planes")
+        seconds = interleaved_medians(calls, args.repeats, clock=time.process_time)
         rates = {name: n_pixels * n_planes / seconds[name] / 1e6 for name in methods}
         difference = np.abs(results["cellcoadd"][0] - results["galsim L3"][0]).max()
-        row = f"{n_planes:>6} " + " ".join(f"{rates[name]:>12.2f}" for name in methods)
-        row += f" {rates['cellcoadd'] / rates['scipy o3']:>11.2f}"
-        row += f" {rates['cellcoadd'] / rates['galsim L3']:>12.2f} {difference:>10.1e}"
-        print(row)
+        rows.append(
+            (
+                n_planes,
+                *(rates[name] for name in methods),
+                rates["cellcoadd"] / rates["scipy o3"],
+                rates["cellcoadd"] / rates["galsim L3"],
+                difference,
+            )
+        )
+    header = ["planes", *methods, "ours/scipy", "ours/galsim", "max diff gs"]
+    print(format_table(header, rows, ["d", ".2f", ".2f", ".2f", ".2f", ".2f", ".2f", ".1e"]))
 
 
 if __name__ == "__main__":

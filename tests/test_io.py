@@ -14,8 +14,15 @@ import fitsio
 import h5py
 import numpy as np
 import pytest
-from astropy.wcs import WCS
 from click.testing import CliRunner
+from coadd_factory import (
+    SMALL,
+    assert_same,
+    make_metadata,
+    make_patch,
+    make_records,
+    random_float_bits,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -23,161 +30,11 @@ from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.io import api, common, fits_format, hdf5_format
 from cellcoadd.io.errors import CellCoaddFormatError
-from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
-from cellcoadd.model.inputs import REJECTION_REASONS, InputRecord
-from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+from cellcoadd.model.patch_coadd import PatchCoadd
 
-SMALL = SkyMapConfig(
-    cell_inner=8, cell_border=3, cells_per_patch=2, patch_border_cells=1, patches_per_tract=3
-)
 NAMES = ["patch.fits", "patch.fits.fz", "patch.h5", "patch.hdf5"]
 LAYOUTS = [(name, comp) for name in NAMES for comp in (None, "lossless")]
-
-
-# ----------------------------------------------------------------------------- factories
-
-
-def tract_wcs(config: SkyMapConfig, center: tuple[float, float]) -> WCS:
-    """TAN WCS of a tract centred on ``center`` (deg), tract pixel (0, 0) at array (0, 0)."""
-    wcs = WCS(naxis=2)
-    wcs.wcs.ctype = ["RA---TAN", "DEC--TAN"]
-    wcs.wcs.crval = list(center)
-    middle = (config.tract_pixels - 1) / 2.0
-    wcs.wcs.crpix = [middle + 1.0, middle + 1.0]
-    scale = config.pixel_scale / 3600.0
-    wcs.wcs.cd = [[-scale, 0.0], [0.0, scale]]
-    return wcs
-
-
-def cell_wcs(tract: WCS, x_start: int, y_start: int) -> WCS:
-    """The tract WCS shifted so that array pixel (0, 0) is tract pixel (x_start, y_start)."""
-    wcs = tract.deepcopy()
-    wcs.wcs.crpix = [tract.wcs.crpix[0] - x_start, tract.wcs.crpix[1] - y_start]
-    return wcs
-
-
-def make_metadata(
-    config: SkyMapConfig = SMALL,
-    *,
-    n_noise: int = 2,
-    psf_size: int = 5,
-    band: str = "r",
-    patch: tuple[int, int] = (1, 1),
-) -> PatchMetadata:
-    return PatchMetadata(
-        skymap_config=config,
-        tract=7,
-        tract_center=(150.25, -2.5),
-        patch=patch,
-        band=band,
-        units="nJy",
-        build_config=BuildConfig(n_noise=n_noise, psf_size=psf_size),
-    )
-
-
-def random_float_bits(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """Arbitrary float32 bit patterns: NaN payloads, infinities, -0.0, subnormals included."""
-    return rng.integers(0, 2**32, size=shape, dtype=np.uint64).astype(np.uint32).view(np.float32)
-
-
-def make_records(rng: np.random.Generator, band: str, n_used: int, n_rejected: int) -> list:
-    records = []
-    for i in range(n_used + n_rejected):
-        used = i < n_used
-        nan_payload = np.array([0x7FF8_0000_DEAD_BEEF], dtype=np.uint64).view(np.float64)[0]
-        records.append(
-            InputRecord(
-                visit=int(rng.integers(0, 10**6)) * 100 + i,
-                detector=int(rng.integers(0, 189)),
-                band=band if used or rng.random() < 0.5 else "g",
-                weight=float(rng.uniform(0.1, 3.0)) if used else 0.0,
-                status="used" if used else str(rng.choice(REJECTION_REASONS)),
-                overlap_fraction=float(rng.uniform()),
-                psf_fwhm=float(rng.uniform(0.6, 1.2)) if used else float("nan"),
-                psf_e1=float(rng.normal(0, 0.01)),
-                psf_e2=-0.0,
-                psf_T=float(nan_payload) if not used else float(rng.uniform(0.2, 0.6)),
-                zero_point=float(rng.uniform(27, 32)),
-            )
-        )
-    return records
-
-
-def make_cell(
-    meta: PatchMetadata,
-    index: tuple[int, int],
-    rng: np.random.Generator,
-    *,
-    empty: bool = False,
-    arbitrary_bits: bool = True,
-) -> CellCoadd:
-    inner, outer = meta.cell_boxes(index)
-    wcs = cell_wcs(tract_wcs(meta.skymap_config, meta.tract_center), outer.x_start, outer.y_start)
-    n_rejected = int(rng.integers(0, 3))
-    if empty:
-        return CellCoadd.empty(
-            tract=meta.tract,
-            index=index,
-            inner_bbox=inner,
-            outer_bbox=outer,
-            wcs=wcs,
-            n_noise=meta.n_noise,
-            psf_size=meta.psf_size,
-            inputs=make_records(rng, meta.band, 0, n_rejected),
-            mask_bits=meta.mask_bits,
-        )
-    shape = outer.shape
-    planes = ("image", "variance", "mfrac")
-    if arbitrary_bits:
-        values = {name: random_float_bits(rng, shape) for name in planes}
-        noise = random_float_bits(rng, (meta.n_noise, *shape))
-    else:
-        values = {name: rng.standard_normal(shape, dtype=np.float32) for name in planes}
-        noise = rng.standard_normal((meta.n_noise, *shape), dtype=np.float32)
-    psf = rng.uniform(size=(meta.psf_size, meta.psf_size))
-    return CellCoadd(
-        **values,
-        mask=rng.integers(0, 256, size=shape, dtype=np.int32),
-        noise=noise,
-        psf=psf / psf.sum(),
-        inputs=make_records(rng, meta.band, int(rng.integers(1, 4)), n_rejected),
-        tract=meta.tract,
-        index=index,
-        inner_bbox=inner,
-        outer_bbox=outer,
-        wcs=wcs,
-    )
-
-
-def make_patch(
-    config: SkyMapConfig = SMALL,
-    *,
-    seed: int = 0,
-    n_noise: int = 2,
-    psf_size: int = 5,
-    band: str = "r",
-    patch: tuple[int, int] = (1, 1),
-    empty: tuple[tuple[int, int], ...] = (),
-    missing: tuple[tuple[int, int], ...] = (),
-    arbitrary_bits: bool = True,
-) -> PatchCoadd:
-    """A patch with random contents (deterministic in ``seed``)."""
-    rng = np.random.default_rng(seed)
-    meta = make_metadata(config, n_noise=n_noise, psf_size=psf_size, band=band, patch=patch)
-    cells = {
-        index: make_cell(meta, index, rng, empty=index in empty, arbitrary_bits=arbitrary_bits)
-        for index in meta.all_cell_indices
-        if index not in missing
-    }
-    return PatchCoadd(meta, cells)
-
-
-def assert_same(read: PatchCoadd, expected: PatchCoadd) -> None:
-    assert read.metadata == expected.metadata
-    assert list(read.cells) == list(expected.cells)
-    for index, cell in expected.cells.items():
-        assert read[index].equals(cell), f"cell {index} differs"
 
 
 @pytest.fixture(scope="module")
@@ -576,7 +433,7 @@ def test_exception_mid_write_leaves_previous_file(tmp_path, monkeypatch, patch, 
 _KILL_SCRIPT = """
 import sys
 sys.path.insert(0, {tests!r})
-from test_io import make_patch
+from coadd_factory import make_patch
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.io import api
 config = SkyMapConfig(cell_inner=150, cell_border=25, cells_per_patch=4, patches_per_tract=3)

@@ -14,10 +14,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from cellcoadd.build.mapping import footprint_box
-from cellcoadd.build.noise import standard_normal_field
+from cellcoadd.build.noise import standard_normal_field, tile_rows_read
 from cellcoadd.build.psf import PsfError, draw_exposure_psf, psf_moments
 from cellcoadd.build.select import Candidate, select_exposure
-from cellcoadd.build.warp import warp_mask_or, warp_planes
+from cellcoadd.build.warp import accumulate_warped, warp_mask_or, warp_planes
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -27,62 +27,80 @@ from cellcoadd.model.maskbits import MaskBits
 
 
 class _Sums:
-    """Running weighted sums of one cell's planes (float64 for exact accumulation)."""
+    """Running weighted sums of one cell's planes (float64 for exact accumulation).
+
+    One array holds them all, in the order of :func:`_input_pixels` (image, K noise
+    realizations, variance, masked fraction), so one kernel call adds an exposure.
+    """
 
     def __init__(self, shape: tuple[int, int], n_noise: int, psf_size: int) -> None:
-        self.image = np.zeros(shape)
-        self.noise = np.zeros((n_noise, *shape))
-        self.variance = np.zeros(shape)
-        self.mfrac = np.zeros(shape)
+        self.planes = np.zeros((n_noise + 3, *shape))
+        self.image = self.planes[0]
+        self.noise = self.planes[1 : 1 + n_noise]
+        self.variance = self.planes[1 + n_noise]
+        self.mfrac = self.planes[2 + n_noise]
         self.psf = np.zeros((psf_size, psf_size))
         self.mask = np.zeros(shape, dtype=np.int32)
         self.weight = 0.0
 
 
-def _noise_planes(candidate: Candidate, n_noise: int, seed: int) -> np.ndarray:
-    """K noise realizations over the footprint with the exposure's variance (zero-point scaled)."""
+def _input_pixels(candidate: Candidate, n_noise: int, seed: int, with_mfrac: bool) -> np.ndarray:
+    """The planes to warp over the footprint, interleaved: shape (ny, nx, P), float64.
+
+    Planes: image and K noise realizations (zero-point scaled, masked pixels zeroed),
+    variance (scaled by the flux scale squared) and, if ``with_mfrac``, the bad-pixel
+    indicator whose warp is the masked fraction.
+    """
     exposure, box = candidate.exposure, candidate.footprint
+    good = ~candidate.bad
+    pixels = np.empty((*box.shape, n_noise + 2 + int(with_mfrac)))
+    pixels[..., 0] = np.where(good, exposure.image[box.slices], 0.0) * candidate.flux_scale
     if np.isscalar(exposure.variance):
         sigma = np.sqrt(exposure.variance)
+        pixels[..., 1 + n_noise] = exposure.variance * candidate.flux_scale**2
     else:
         sigma = np.sqrt(np.where(candidate.bad, 0.0, exposure.variance[box.slices]))
-    planes = np.empty((n_noise, *box.shape))
+        variance = np.where(good, exposure.variance[box.slices], 0.0)
+        pixels[..., 1 + n_noise] = variance * candidate.flux_scale**2
+    # only the noise the kernel reads is drawn (see cellcoadd.build.noise)
+    rows_read = tile_rows_read(candidate.mapping.x, candidate.mapping.y, box)
     for realization in range(n_noise):
-        field = standard_normal_field(seed, exposure.visit, exposure.detector, realization, box)
-        planes[realization] = field * sigma * candidate.flux_scale
-    return planes
+        field = standard_normal_field(
+            seed, exposure.visit, exposure.detector, realization, box, rows_read
+        )
+        field *= sigma
+        field *= candidate.flux_scale
+        pixels[..., 1 + realization] = field
+    if with_mfrac:
+        pixels[..., 2 + n_noise] = candidate.bad
+    return pixels
 
 
 def _add_exposure(
     sums: _Sums, candidate: Candidate, psf_stamp: np.ndarray, config: BuildConfig, seed: int
 ) -> None:
     exposure, box, mapping = candidate.exposure, candidate.footprint, candidate.mapping
-    good = ~candidate.bad
-    image = np.where(good, exposure.image[box.slices], 0.0) * candidate.flux_scale
-    variance = (
-        np.full(box.shape, exposure.variance)
-        if np.isscalar(exposure.variance)
-        else np.where(good, exposure.variance[box.slices], 0.0)
-    ) * candidate.flux_scale**2
-    planes = np.concatenate(
-        [
-            image[None],
-            _noise_planes(candidate, config.n_noise, seed),
-            variance[None],
-            candidate.bad[None].astype(np.float64),
-        ]
-    )
+    n_noise = config.n_noise
+    # Without bad pixels the masked-fraction plane is all zeros and adds exactly nothing.
+    with_mfrac = bool(candidate.bad.any())
+    pixels = _input_pixels(candidate, n_noise, seed, with_mfrac)
     x_local = mapping.x - box.x_start
     y_local = mapping.y - box.y_start
-    warped = warp_planes(planes, x_local, y_local)
     weight, area = candidate.weight, mapping.area_ratio
-    n_noise = config.n_noise
-    sums.image += weight * area * warped[0]
-    sums.noise += weight * area * warped[1 : 1 + n_noise]
-    # variance of a warped pixel is approximated by the warped variance (the noise
-    # realizations carry the exact correlated noise)
-    sums.variance += weight**2 * area**2 * warped[1 + n_noise]
-    sums.mfrac += weight * warped[2 + n_noise]
+    # image and noise: weight * area; variance: weight^2 * area^2 (the variance of a warped
+    # pixel is approximated by the warped variance; the noise realizations carry the exact
+    # correlated noise); masked fraction: weight
+    plane_weights = [weight] * (1 + n_noise) + [weight**2] + [weight] * with_mfrac
+    plane_scales = [0] * (1 + n_noise) + [1] + [-1] * with_mfrac
+    accumulate_warped(
+        pixels,
+        x_local,
+        y_local,
+        sums.planes[: pixels.shape[2]],
+        plane_weights,
+        np.stack([area, area**2]),
+        plane_scales,
+    )
     sums.mask |= warp_mask_or(exposure.mask[box.slices], x_local, y_local)
     sums.psf += weight * psf_stamp
     sums.weight += weight
@@ -178,11 +196,13 @@ def build_cell(
     shape = cell.outer_bbox.shape
     sums = _Sums(shape, config.n_noise, config.psf_size)
     records: list[InputRecord] = []
+    cell_jacobian = _cell_jacobian(cell)  # for the PSF moments of every input
+    grid_cache: dict = {}  # mapping grids, the same for every exposure of the cell
     for exposure in exposures:
         bad_bits = exposure.mask_bits.mask_of(
             name for name in config.bad_mask_bits if name in exposure.mask_bits.bits
         )
-        status, found = select_exposure(cell, exposure, config, bad_bits)
+        status, found = select_exposure(cell, exposure, config, bad_bits, grid_cache=grid_cache)
         if status != "used":
             records.append(_record(exposure, status, **found))
             continue
@@ -195,7 +215,7 @@ def build_cell(
             )
             continue
         _add_exposure(sums, candidate, psf_stamp, config, seed)
-        moments = psf_moments(psf_stamp, _cell_jacobian(cell))
+        moments = psf_moments(psf_stamp, cell_jacobian)
         records.append(
             _record(
                 exposure,

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
+import numba
 import numpy as np
 from astropy.wcs import WCS
 from astropy.wcs.wcs import NoConvergence
@@ -35,10 +37,39 @@ _DIFFERENCE_STEP = 0.5
 _UNIT_AREA_TOLERANCE = 1e-8
 _ACCEPT_FRACTION = 0.5
 _MIN_GRID_STEP = 4
+# Bound on |estimate - interpolation| relative to the largest partial sum (see _Deferred).
+_ESTIMATE_ERROR = 1e-10
 
 
 class MappingError(ValueError):
     """Coadd pixels cannot be mapped into an exposure (off its projection, or diverging)."""
+
+
+class _Interpolated:
+    """A :class:`PixelMapping` field whose value may still be a :class:`_Deferred`
+    interpolation, carried out (once) when the field is first read."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name, self.slot = name, "_" + name
+
+    def __get__(self, mapping: PixelMapping | None, owner: type | None = None) -> np.ndarray:
+        if mapping is None:
+            raise AttributeError(self.name)  # a required field: no class-level default
+        value = mapping.__dict__[self.slot]
+        if isinstance(value, _Deferred):
+            value = value.evaluate()
+            if self.name == "area_ratio":
+                _snap_unit_area(value)
+            value.setflags(write=False)
+            mapping.__dict__[self.slot] = value
+        return value
+
+    def __set__(self, mapping: PixelMapping, value: np.ndarray | _Deferred) -> None:
+        mapping.__dict__[self.slot] = value  # only reached from __init__: it is frozen
+
+    @staticmethod
+    def is_deferred(mapping: PixelMapping, name: str) -> bool:
+        return isinstance(mapping.__dict__["_" + name], _Deferred)
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,19 +92,47 @@ class PixelMapping:
         chain at the check points; 0 when every pixel was evaluated exactly.
     grid_step : int
         Nominal spacing (coadd px) of the interpolation grid; 0 for exact evaluation.
+
+    Notes
+    -----
+    From :func:`map_box`, ``x``, ``y`` and ``area_ratio`` are interpolated from the grid
+    on first access (then kept, read-only): most exposures considered for a cell are
+    rejected, and :meth:`estimate_positions` is enough to reject them.
     """
 
     box: Box
-    x: np.ndarray
-    y: np.ndarray
-    area_ratio: np.ndarray
+    x: np.ndarray = _Interpolated()  # type: ignore[assignment]
+    y: np.ndarray = _Interpolated()  # type: ignore[assignment]
+    area_ratio: np.ndarray = _Interpolated()  # type: ignore[assignment]
     max_error: float
     grid_step: int
 
     @property
     def is_complete(self) -> bool:
         """Whether every pixel of the box has a finite exposure position."""
+        if _Interpolated.is_deferred(self, "x") and _Interpolated.is_deferred(self, "y"):
+            return True  # interpolated from an accepted grid, whose values are all finite
         return bool(np.isfinite(self.x).all() and np.isfinite(self.y).all())
+
+    def estimate_positions(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``x`` and ``y`` computed cheaply, and a bound on their distance to ``x``, ``y``.
+
+        The bound is far below any pixel-level decision's scale (~1e-7 px) and is 0 when
+        the positions are already at hand. A decision that holds for every position moved
+        by up to the bound is the one ``x`` and ``y`` would give, without computing them.
+        """
+        deferred_x, deferred_y = self.__dict__["_x"], self.__dict__["_y"]
+        if not (isinstance(deferred_x, _Deferred) and isinstance(deferred_y, _Deferred)):
+            return self.x, self.y, 0.0
+        x, x_bound = deferred_x.estimate()
+        y, y_bound = deferred_y.estimate()
+        return x, y, max(x_bound, y_bound)
+
+
+def _snap_unit_area(area_ratio: np.ndarray) -> None:
+    # WCS round trips leave ~1e-9 relative noise on a ratio that is exactly 1 for equal
+    # pixel scales; far below float32 precision, but it would spoil exact copies
+    area_ratio[np.abs(area_ratio - 1.0) < _UNIT_AREA_TOLERANCE] = 1.0
 
 
 def map_points(
@@ -168,20 +227,103 @@ def _exact_mapping(coadd_wcs: WCS, box: Box, exposure_wcs: WCS) -> PixelMapping:
     return _frozen_mapping(box, x_exp, y_exp, area_ratio, 0.0, 0)
 
 
+def _interpolate(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``rows @ values[::2, ::2] @ cols.T``: grid-node values interpolated (see _cubic_basis)."""
+    # einsum, not matmul: BLAS threading costs far more than these tiny products and
+    # competes with the processes building other cells
+    partial = np.einsum("ij,jk->ik", rows, values[::2, ::2])
+    return np.einsum("ik,lk->il", partial, cols)
+
+
+@numba.njit(cache=True)
+def _sparse_product(partial: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``partial @ cols.T`` for cubic bases: each row of ``cols`` has at most four
+    consecutive non-zero entries (``cols`` has at least four columns)."""
+    n_cols, n_nodes = cols.shape
+    window = np.empty(n_cols, dtype=np.int64)  # first of the four entries used per row
+    for col in range(n_cols):
+        first = n_nodes - 4
+        for k in range(n_nodes):
+            if cols[col, k] != 0.0:
+                first = min(k, n_nodes - 4)
+                break
+        window[col] = first
+    out = np.empty((partial.shape[0], n_cols))
+    for row in range(partial.shape[0]):
+        for col in range(n_cols):
+            k = window[col]
+            out[row, col] = (
+                partial[row, k] * cols[col, k] + partial[row, k + 1] * cols[col, k + 1]
+            ) + (partial[row, k + 2] * cols[col, k + 2] + partial[row, k + 3] * cols[col, k + 3])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Deferred:
+    """A pixel-level quantity interpolated from its grid values when first needed."""
+
+    values: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+
+    def evaluate(self) -> np.ndarray:
+        return _interpolate(self.values, self.rows, self.cols)
+
+    def estimate(self) -> tuple[np.ndarray, float]:
+        """The interpolation summed another way (a few times cheaper), with an error bound.
+
+        The first product is the same as :meth:`evaluate`'s; the second skips the zero
+        basis weights (four of a row's are not). Both sums of at most ``K`` products of
+        size ``<= |partial| * sum|cols|`` (``sum|cols| <= 1.25`` for cubic Lagrange
+        weights) are within ``K * 2^-52`` of that of the exact sum, so they differ by less
+        than ``_ESTIMATE_ERROR * max(1, max|partial|)`` for any ``K`` up to ~1e5.
+        """
+        partial = np.einsum("ij,jk->ik", self.rows, self.values[::2, ::2])
+        estimate = _sparse_product(partial, np.ascontiguousarray(self.cols))
+        bound = _ESTIMATE_ERROR * max(1.0, float(np.abs(partial).max()))
+        return estimate, bound
+
+
 def _frozen_mapping(
     box: Box,
-    x: np.ndarray,
-    y: np.ndarray,
-    area_ratio: np.ndarray,
+    x: np.ndarray | _Deferred,
+    y: np.ndarray | _Deferred,
+    area_ratio: np.ndarray | _Deferred,
     max_error: float,
     grid_step: int,
 ) -> PixelMapping:
-    # WCS round trips leave ~1e-9 relative noise on a ratio that is exactly 1 for equal
-    # pixel scales; far below float32 precision, but it would spoil exact copies
-    area_ratio[np.abs(area_ratio - 1.0) < _UNIT_AREA_TOLERANCE] = 1.0
+    if isinstance(area_ratio, np.ndarray):
+        _snap_unit_area(area_ratio)
     for values in (x, y, area_ratio):
-        values.setflags(write=False)
+        if isinstance(values, np.ndarray):
+            values.setflags(write=False)
     return PixelMapping(box, x, y, area_ratio, float(max_error), int(grid_step))
+
+
+class _AxisGrid:
+    """Grid nodes along one axis of a box and the cubic bases that interpolate from them."""
+
+    def __init__(self, start: int, stop: int, step: int) -> None:
+        self.start, self.stop = start, stop
+        self.nodes = _axis_nodes(start, stop, step)
+        # Nodes and the midpoints between them; the midpoints (odd indices) are check points.
+        self.dense = np.linspace(self.nodes[0], self.nodes[-1], 2 * self.nodes.size - 1)
+        self.dense_basis = _cubic_basis(self.nodes, self.dense)
+        self.dense_basis.setflags(write=False)  # shared by every mapping using the grid
+
+    @cached_property
+    def pixel_basis(self) -> np.ndarray:
+        """Basis interpolating to every pixel centre (needed once a grid is accepted)."""
+        basis = _cubic_basis(self.nodes, np.arange(self.start, self.stop, dtype=np.float64))
+        basis.setflags(write=False)
+        return basis
+
+
+def _axis_grid(start: int, stop: int, step: int, cache: dict) -> _AxisGrid:
+    key = (start, stop, step)
+    if key not in cache:
+        cache[key] = _AxisGrid(start, stop, step)
+    return cache[key]
 
 
 def _try_grid(
@@ -191,48 +333,38 @@ def _try_grid(
     step: int,
     tolerance: float,
     area_tolerance: float,
+    grids: dict,
 ) -> tuple[PixelMapping | None, bool]:
     """Interpolated mapping on a grid of ``step`` px, or None if it fails verification.
 
     The flag says whether the exact chain was finite on the whole grid; when it is not,
-    part of the box is off the exposure and no grid can help.
+    part of the box is off the exposure and no grid can help. ``grids`` keeps the axis
+    grids (the same for both axes of a square box, and for every exposure of a cell).
     """
-    nodes_x = _axis_nodes(box.x_start, box.x_stop, step)
-    nodes_y = _axis_nodes(box.y_start, box.y_stop, step)
-    # Nodes and the midpoints between them; the midpoints (odd indices) are check points.
-    dense_x = np.linspace(nodes_x[0], nodes_x[-1], 2 * nodes_x.size - 1)
-    dense_y = np.linspace(nodes_y[0], nodes_y[-1], 2 * nodes_y.size - 1)
-    grid_x, grid_y = np.meshgrid(dense_x, dense_y)
+    along_x = _axis_grid(box.x_start, box.x_stop, step, grids)
+    along_y = _axis_grid(box.y_start, box.y_stop, step, grids)
+    grid_x, grid_y = np.meshgrid(along_x.dense, along_y.dense)
     exact_x, exact_y, exact_area = _map_with_area(coadd_wcs, grid_x, grid_y, exposure_wcs)
     finite = np.isfinite(exact_x).all() and np.isfinite(exact_y).all()
     if not (finite and np.isfinite(exact_area).all() and (exact_area > 0).all()):
         return None, False
 
-    basis_x = _cubic_basis(nodes_x, dense_x)
-    basis_y = _cubic_basis(nodes_y, dense_y)
-
-    def interpolate(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        # einsum, not matmul: BLAS threading costs far more than these tiny products and
-        # competes with the processes building other cells
-        partial = np.einsum("ij,jk->ik", rows, values[::2, ::2])
-        return np.einsum("ik,lk->il", partial, cols)
-
+    basis_x, basis_y = along_x.dense_basis, along_y.dense_basis
     error = np.hypot(
-        interpolate(exact_x, basis_y, basis_x) - exact_x,
-        interpolate(exact_y, basis_y, basis_x) - exact_y,
+        _interpolate(exact_x, basis_y, basis_x) - exact_x,
+        _interpolate(exact_y, basis_y, basis_x) - exact_y,
     )
     max_error = float(error.max())
-    area_error = float(np.abs(interpolate(exact_area, basis_y, basis_x) / exact_area - 1).max())
+    area_error = float(np.abs(_interpolate(exact_area, basis_y, basis_x) / exact_area - 1).max())
     if max_error > _ACCEPT_FRACTION * tolerance or area_error > area_tolerance:
         return None, True
 
-    pixel_basis_x = _cubic_basis(nodes_x, np.arange(box.x_start, box.x_stop, dtype=np.float64))
-    pixel_basis_y = _cubic_basis(nodes_y, np.arange(box.y_start, box.y_stop, dtype=np.float64))
+    pixel_basis_x, pixel_basis_y = along_x.pixel_basis, along_y.pixel_basis
     mapping = _frozen_mapping(
         box,
-        interpolate(exact_x, pixel_basis_y, pixel_basis_x),
-        interpolate(exact_y, pixel_basis_y, pixel_basis_x),
-        interpolate(exact_area, pixel_basis_y, pixel_basis_x),
+        _Deferred(exact_x, pixel_basis_y, pixel_basis_x),
+        _Deferred(exact_y, pixel_basis_y, pixel_basis_x),
+        _Deferred(exact_area, pixel_basis_y, pixel_basis_x),
         max_error,
         step,
     )
@@ -246,6 +378,8 @@ def map_box(
     tolerance: float = 1e-3,
     grid_step: int = 32,
     area_tolerance: float = 1e-6,
+    *,
+    grid_cache: dict | None = None,
 ) -> PixelMapping:
     """Map every coadd pixel centre of ``box`` into exposure pixel coordinates.
 
@@ -266,6 +400,9 @@ def map_box(
         every pixel is evaluated exactly.
     area_tolerance : float
         Largest allowed relative error of ``area_ratio`` at the check points.
+    grid_cache : dict, optional
+        Keeps the interpolation grids for later calls on boxes with the same extent (e.g.
+        every exposure considered for one cell); any dict, filled here.
 
     Returns
     -------
@@ -281,11 +418,12 @@ def map_box(
         empty = np.zeros(box.shape)
         return _frozen_mapping(box, empty, empty.copy(), empty.copy(), 0.0, 0)
     step = grid_step
+    grids = grid_cache if grid_cache is not None else {}
     # A cubic needs four nodes per axis; tiny boxes are cheaper to evaluate exactly anyway.
     if min(box.nx, box.ny) >= 4:
         while step >= _MIN_GRID_STEP:
             mapping, finite = _try_grid(
-                coadd_wcs, box, exposure_wcs, step, tolerance, area_tolerance
+                coadd_wcs, box, exposure_wcs, step, tolerance, area_tolerance, grids
             )
             if mapping is not None:
                 return mapping

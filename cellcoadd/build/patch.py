@@ -10,7 +10,13 @@ from __future__ import annotations
 
 import traceback
 from collections.abc import Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from concurrent.futures import (
+    BrokenExecutor,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    as_completed,
+)
 
 from tqdm.auto import tqdm
 
@@ -21,6 +27,7 @@ from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
 
@@ -56,6 +63,65 @@ def _resolve_executor(
     if workers > 1:
         return ProcessPoolExecutor(max_workers=workers), True
     return None, False
+
+
+def _run_on(
+    pool: Executor,
+    tasks: list[tuple[Cell, list[Exposure]]],
+    config: BuildConfig,
+    seed: int,
+    mask_bits: MaskBits,
+    results: dict[tuple[int, int], CellCoadd],
+    bar: tqdm,
+) -> None:
+    """Build the cells of ``tasks`` on ``pool`` into ``results``; on the first failure,
+    cancel what has not started and raise a CellBuildError naming the cell."""
+    submitted: list[tuple[Future, Cell]] = [
+        (pool.submit(_build_one, cell, near, config, seed, mask_bits), cell) for cell, near in tasks
+    ]
+    cells = dict(submitted)
+    try:
+        for future in as_completed(cells):
+            cell = cells[future]
+            try:
+                results[cell.index] = future.result()
+            except CellBuildError:
+                raise
+            except BrokenExecutor as err:
+                raise CellBuildError(_died_message(submitted, err)) from err
+            except Exception as err:  # e.g. dask's KilledWorker: names this very cell
+                raise CellBuildError(
+                    f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}"
+                ) from err
+            bar.update()
+    except BaseException:
+        for future, _ in submitted:
+            future.cancel()
+        raise
+
+
+def _died_message(submitted: list[tuple[Future, Cell]], err: BaseException) -> str:
+    """Name the cell a dead worker process was building, as far as it can be known.
+
+    A broken process pool fails every unfinished future at once without saying which
+    task killed its worker. Tasks start in submission order, so the earliest-submitted
+    unfinished cell had started: it is named, with the next unfinished ones (one of which
+    may have been the task that died instead).
+    """
+    unfinished = [cell for future, cell in submitted if _broken_or_pending(future)]
+    first = unfinished[0] if unfinished else submitted[0][1]
+    others = ", ".join(str(cell.index) for cell in unfinished[1:4])
+    after = f" or one started after it ({others}...)" if others else ""
+    return (
+        f"cell {first.index} of tract {first.tract} failed: a worker process died while "
+        f"building it{after}: {type(err).__name__}: {err}"
+    )
+
+
+def _broken_or_pending(future: Future) -> bool:
+    if not future.done():
+        return True
+    return not future.cancelled() and isinstance(future.exception(), BrokenExecutor)
 
 
 def build_patch(
@@ -109,6 +175,10 @@ def build_patch(
         raise ValueError("build_patch needs at least one exposure")
     if len(bands) > 1:
         raise ValueError(f"exposures of several bands given ({bands}); build one band at a time")
+    try:
+        check_band_name(bands[0])
+    except ValueError as err:
+        raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
     mask_bits = exposures[0].mask_bits
     cells = patch.cells
     tasks = [
@@ -123,22 +193,7 @@ def build_patch(
                 results[cell.index] = _build_one(cell, near, config, seed, mask_bits)
                 bar.update()
         else:
-            futures = {
-                pool.submit(_build_one, cell, near, config, seed, mask_bits): cell
-                for cell, near in tasks
-            }
-            for future in as_completed(futures):
-                cell = futures[future]
-                try:
-                    results[cell.index] = future.result()
-                except CellBuildError:
-                    raise
-                except Exception as err:  # e.g. a worker process died
-                    raise CellBuildError(
-                        f"cell {cell.index} of tract {cell.tract} failed: "
-                        f"{type(err).__name__}: {err}"
-                    ) from err
-                bar.update()
+            _run_on(pool, tasks, config, seed, mask_bits, results, bar)
     finally:
         bar.close()
         if owned:

@@ -8,15 +8,24 @@ exposure considered gets an :class:`InputRecord` saying what happened to it.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import numba
 import numpy as np
+from astropy.wcs.wcs import NoConvergence
 
 from cellcoadd.build.mapping import PixelMapping, footprint_box, map_box
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
+
+# Range of scaled background variances the float32 coadd planes can represent.
+_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass
@@ -32,11 +41,16 @@ class Candidate:
     overlap_fraction: float
 
 
-def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
-    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far)."""
+def _rough_points(cell: Cell) -> tuple[np.ndarray, np.ndarray]:
+    """Corners, edge midpoints and centre of the cell's outer box (cell pixels)."""
     ny, nx = cell.outer_bbox.shape
     gx, gy = np.meshgrid([0.0, (nx - 1) / 2, nx - 1.0], [0.0, (ny - 1) / 2, ny - 1.0])
-    ra, dec = cell.wcs.all_pix2world(gx.ravel(), gy.ravel(), 0)
+    return gx.ravel(), gy.ravel()
+
+
+def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
+    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far)."""
+    ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
     try:
         ex, ey = exposure.wcs.all_world2pix(ra, dec, 0, quiet=True)
     except Exception:  # distortion solutions can fail far from the detector
@@ -52,33 +66,146 @@ def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
     return found if found.overlaps(Box.from_shape(exposure.shape)) else None
 
 
+def exposures_near_cells(
+    cells: Sequence[Cell], exposures: Sequence[Exposure], margin: float = 16.0
+) -> list[list[int]]:
+    """For each cell, the indices of the exposures that may be near it, in one pass.
+
+    A superset of the exposures for which :func:`rough_exposure_box` is not None, meant as
+    a cheap first cut before that exact test (which, like the build, then runs once per
+    cell and candidate, e.g. in the worker building the cell). The rough points of all
+    cells go through each exposure's inverse WCS in one call instead of one call per cell
+    and exposure; ``margin`` (exposure px) absorbs the differences an iterative SIP
+    inverse shows on another batch of points (below its 1e-4 px tolerance when it
+    converges). Cells whose points do not converge or are not finite keep the exposure.
+
+    Returns
+    -------
+    list of list of int
+        ``result[i]``: indices into ``exposures`` for ``cells[i]``, in increasing order.
+    """
+    points = [cell.wcs.all_pix2world(*_rough_points(cell), 0) for cell in cells]
+    n_points = len(points[0][0]) if points else 0
+    ra = np.concatenate([p[0] for p in points]) if points else np.empty(0)
+    dec = np.concatenate([p[1] for p in points]) if points else np.empty(0)
+    near: list[list[int]] = [[] for _ in cells]
+    for k, exposure in enumerate(exposures):
+        keep = np.ones(len(cells), dtype=bool)
+        try:
+            ex, ey = exposure.wcs.all_world2pix(ra, dec, 0)
+            unsure = np.zeros(ra.size, dtype=bool)
+        except NoConvergence as failure:
+            solution = np.asarray(failure.best_solution, dtype=np.float64)
+            ex, ey = solution[:, 0], solution[:, 1]
+            unsure = np.zeros(ra.size, dtype=bool)
+            for flagged in (failure.divergent, failure.slow_conv):
+                if flagged is not None:
+                    unsure[np.asarray(flagged)] = True
+        except Exception:  # any other failure: let the exact test decide for every cell
+            ex = ey = None
+        if ex is not None:
+            ex = np.asarray(ex).reshape(len(cells), n_points)
+            ey = np.asarray(ey).reshape(len(cells), n_points)
+            unsure = unsure.reshape(len(cells), n_points).any(axis=1)
+            unsure |= ~(np.isfinite(ex).all(axis=1) & np.isfinite(ey).all(axis=1))
+            ny, nx = exposure.shape
+            with np.errstate(invalid="ignore"):
+                close = (
+                    (ex.min(axis=1) - margin < nx + 3)
+                    & (ex.max(axis=1) + margin > -5)
+                    & (ey.min(axis=1) - margin < ny + 3)
+                    & (ey.max(axis=1) + margin > -5)
+                )
+            keep = unsure | close
+        for i in np.flatnonzero(keep):
+            near[i].append(k)
+    return near
+
+
+class _Positions(NamedTuple):
+    """Exposure pixel positions, as :func:`footprint_box` takes them."""
+
+    x: np.ndarray
+    y: np.ndarray
+
+
+@numba.njit(cache=True)
+def _clear_of(values: np.ndarray, lines: np.ndarray, bound: float) -> bool:
+    """Whether no value lies within ``bound`` of any of ``lines``, nor its minimum or
+    maximum within ``bound`` of an integer (where its floor is decided)."""
+    low, high = np.inf, -np.inf
+    for value in values.flat:
+        if not math.isfinite(value):
+            return False
+        for line in lines:
+            if abs(value - line) <= bound:
+                return False
+        low, high = min(low, value), max(high, value)
+    for extreme in (low, high):
+        if math.floor(extreme - bound) != math.floor(extreme + bound):
+            return False
+    return True
+
+
+def _decided_alike(valid: Box, x: np.ndarray, y: np.ndarray, bound: float) -> bool:
+    """Whether positions known to within ``bound`` px decide selection exactly as the exact
+    ones do: which are inside ``valid`` (none within ``bound`` of its edges) and the
+    footprint (the floors of the extreme positions)."""
+    x_edges = np.array([valid.x_start - 0.5, valid.x_stop - 0.5])
+    y_edges = np.array([valid.y_start - 0.5, valid.y_stop - 0.5])
+    return _clear_of(x, x_edges, bound) and _clear_of(y, y_edges, bound)
+
+
 def select_exposure(
-    cell: Cell, exposure: Exposure, config: BuildConfig, bad_bits: int
+    cell: Cell,
+    exposure: Exposure,
+    config: BuildConfig,
+    bad_bits: int,
+    *,
+    grid_cache: dict | None = None,
 ) -> tuple[str, Candidate | dict]:
     """Decide whether ``exposure`` can be used for ``cell``.
 
     Returns ``("used", Candidate)`` or ``(reason, details)`` with ``details`` the record
-    fields known so far (``overlap_fraction``, ``weight``).
+    fields known so far (``overlap_fraction``, ``weight``). ``grid_cache``: a dict shared
+    by the calls for one cell, reusing its mapping grids (see :func:`map_box`).
     """
     if rough_exposure_box(cell, exposure) is None:
         return "no_overlap", {"overlap_fraction": 0.0}
     outer = Box.from_shape(cell.outer_bbox.shape)
     try:
-        mapping = map_box(cell.wcs, outer, exposure.wcs, tolerance=config.mapping_tolerance)
+        mapping = map_box(
+            cell.wcs,
+            outer,
+            exposure.wcs,
+            tolerance=config.mapping_tolerance,
+            grid_cache=grid_cache,
+        )
     except Exception:
         return "no_overlap", {"overlap_fraction": 0.0}
     valid = exposure.valid_box
-    inside = valid.contains(mapping.x, mapping.y)
+    # Most candidates are rejected on their positions alone: decide on cheap estimates of
+    # them, unless one is too close to a boundary for the estimate to be trusted.
+    x, y, bound = mapping.estimate_positions()
+    if bound > 0.0 and not _decided_alike(valid, x, y, bound):
+        x, y = mapping.x, mapping.y
+    inside = valid.contains(x, y)
     overlap_fraction = float(np.mean(inside))
     if overlap_fraction == 0.0:
         return "no_overlap", {"overlap_fraction": 0.0}
-    footprint = footprint_box(mapping)
+    if not mapping.is_complete:
+        # part of the cell falls off the exposure's projection: it cannot cover the cell
+        return "edge", {"overlap_fraction": overlap_fraction}
+    footprint = footprint_box(_Positions(x, y))
     if not valid.contains_box(footprint):
         return "edge", {"overlap_fraction": overlap_fraction}
     flux_scale = 10.0 ** (0.4 * (config.zero_point - exposure.zero_point))
     variance = flux_scale**2 * exposure.background_variance
     weight = 1.0 / variance if variance > 0.0 else float("nan")
     if not np.isfinite(weight) or weight <= 0.0:
+        return "bad_weight", {"overlap_fraction": overlap_fraction}
+    if not _FLOAT32_TINY < variance < _FLOAT32_MAX:
+        # the coadd stores float32 planes: this input's scaled noise would under/overflow
         return "bad_weight", {"overlap_fraction": overlap_fraction}
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0
     if bad.mean() > config.max_mask_fraction:

@@ -23,6 +23,13 @@ and cancels in the normalisation; ``sin(pi (d - k) / 3)`` follows from ``sin(pi 
 and ``cos(pi d / 3)`` by angle addition with the constants ``cos(k pi/3)``, ``sin(k pi/3)``.
 The weights of a whole output row are computed first in a branch-free loop that the
 compiler vectorises, then applied to every plane.
+
+Two layouts: :func:`warp_planes` takes the planes one after another ``(P, ny, nx)``;
+:func:`accumulate_warped` takes them interleaved ``(ny, nx, P)``, so the values of all
+planes at an input pixel share cache lines and each 6x6 block is read once for four
+planes, and adds each plane with its own weight and scale straight into the caller's
+sums. Both perform the same operations in the same order: the results are identical.
+:func:`warp_mask_or` spreads mask bits over the same footprints (separably).
 """
 
 from __future__ import annotations
@@ -163,6 +170,115 @@ def _axis_weights(
         exact_tap[i] = coincident if integral else -1
 
 
+@numba.njit(cache=True, inline="always")
+def _tap_row(
+    flat: np.ndarray,
+    start: np.uint64,
+    tap_stride: np.uint64,
+    wx0: float,
+    wx1: float,
+    wx2: float,
+    wx3: float,
+    wx4: float,
+    wx5: float,
+) -> float:
+    """Six x-taps of one input row, summed left to right (the order fixes the bits)."""
+    return (
+        wx0 * flat[start]
+        + wx1 * flat[start + tap_stride]
+        + wx2 * flat[start + np.uint64(2) * tap_stride]
+        + wx3 * flat[start + np.uint64(3) * tap_stride]
+        + wx4 * flat[start + np.uint64(4) * tap_stride]
+        + wx5 * flat[start + np.uint64(5) * tap_stride]
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _block_sum(
+    flat: np.ndarray,
+    corner: np.uint64,
+    row_stride: np.uint64,
+    tap_stride: np.uint64,
+    wx: tuple[float, float, float, float, float, float],
+    weights_y: np.ndarray,
+    col: int,
+) -> float:
+    """The 6x6 weighted sum of one plane: rows of taps accumulated from the first."""
+    wx0, wx1, wx2, wx3, wx4, wx5 = wx
+    total = 0.0
+    for a in range(_N_TAPS):
+        start = corner + np.uint64(a) * row_stride
+        total += weights_y[a, col] * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+    return total
+
+
+@numba.njit(cache=True, inline="always")
+def _block_sums4(
+    flat: np.ndarray,
+    corner: np.uint64,
+    row_stride: np.uint64,
+    tap_stride: np.uint64,
+    wx: tuple[float, float, float, float, float, float],
+    weights_y: np.ndarray,
+    col: int,
+) -> tuple[float, float, float, float]:
+    """:func:`_block_sum` of four interleaved planes at once (same operations per plane).
+
+    Their values of one input pixel share a cache line, so one pass over the 6x6 block
+    serves all four.
+    """
+    wx0, wx1, wx2, wx3, wx4, wx5 = wx
+    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
+    total0 = total1 = total2 = total3 = 0.0
+    for a in range(_N_TAPS):
+        start = corner + np.uint64(a) * row_stride
+        wy = weights_y[a, col]
+        total0 += wy * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+        total1 += wy * _tap_row(flat, start + one, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+        total2 += wy * _tap_row(flat, start + two, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+        total3 += wy * _tap_row(flat, start + three, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+    return total0, total1, total2, total3
+
+
+@numba.njit(cache=True, inline="always")
+def _block_sums2(
+    flat: np.ndarray,
+    corner: np.uint64,
+    row_stride: np.uint64,
+    tap_stride: np.uint64,
+    wx: tuple[float, float, float, float, float, float],
+    weights_y: np.ndarray,
+    col: int,
+) -> tuple[float, float]:
+    """:func:`_block_sums4` for two interleaved planes."""
+    wx0, wx1, wx2, wx3, wx4, wx5 = wx
+    one = np.uint64(1)
+    total0 = total1 = 0.0
+    for a in range(_N_TAPS):
+        start = corner + np.uint64(a) * row_stride
+        wy = weights_y[a, col]
+        total0 += wy * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+        total1 += wy * _tap_row(flat, start + one, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
+    return total0, total1
+
+
+@numba.njit(cache=True, inline="always")
+def _row_weights(
+    x_src: np.ndarray, y_src: np.ndarray, row: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Axis weights, first taps and exact taps of output row ``row`` (see _axis_weights)."""
+    n_cols = x_src.shape[1]
+    weights_x = np.empty((_N_TAPS, n_cols))
+    weights_y = np.empty((_N_TAPS, n_cols))
+    first_x = np.empty(n_cols, dtype=np.uint64)
+    first_y = np.empty(n_cols, dtype=np.uint64)
+    exact_x = np.empty(n_cols, dtype=np.int64)
+    exact_y = np.empty(n_cols, dtype=np.int64)
+    _axis_weights(x_src[row], weights_x, first_x, exact_x)
+    _axis_weights(y_src[row], weights_y, first_y, exact_y)
+    return weights_x, weights_y, first_x, first_y, exact_x, exact_y
+
+
 @numba.njit(cache=True)
 def _warp_row(
     flat_planes: np.ndarray,
@@ -181,20 +297,12 @@ def _warp_row(
     indices spare numba the negative-index wrap-around test on every tap.
     """
     n_planes = out.shape[0]
-    n_cols = x_src.shape[1]
     ny_in, nx_in = plane_shape
     row_stride = np.uint64(nx_in)
     plane_stride = np.uint64(ny_in * nx_in)
-    weights_x = np.empty((_N_TAPS, n_cols))
-    weights_y = np.empty((_N_TAPS, n_cols))
-    first_x = np.empty(n_cols, dtype=np.uint64)
-    first_y = np.empty(n_cols, dtype=np.uint64)
-    exact_x = np.empty(n_cols, dtype=np.int64)
-    exact_y = np.empty(n_cols, dtype=np.int64)
-    _axis_weights(x_src[row], weights_x, first_x, exact_x)
-    _axis_weights(y_src[row], weights_y, first_y, exact_y)
     one = np.uint64(1)
-    for col in range(n_cols):
+    weights_x, weights_y, first_x, first_y, exact_x, exact_y = _row_weights(x_src, y_src, row)
+    for col in range(x_src.shape[1]):
         factor = weight * scale[row, col] if use_scale else weight
         if exact_x[col] >= 0 and exact_y[col] >= 0:
             # Integral position: copy (bit for bit, and immune to non-finite neighbours).
@@ -202,27 +310,18 @@ def _warp_row(
             for p in range(n_planes):
                 out[p, row, col] += factor * flat_planes[np.uint64(p) * plane_stride + source]
             continue
-        wx0 = weights_x[0, col]
-        wx1 = weights_x[1, col]
-        wx2 = weights_x[2, col]
-        wx3 = weights_x[3, col]
-        wx4 = weights_x[4, col]
-        wx5 = weights_x[5, col]
+        wx = (
+            weights_x[0, col],
+            weights_x[1, col],
+            weights_x[2, col],
+            weights_x[3, col],
+            weights_x[4, col],
+            weights_x[5, col],
+        )
         corner = first_y[col] * row_stride + first_x[col]
         for p in range(n_planes):
             start = np.uint64(p) * plane_stride + corner
-            total = 0.0
-            for a in range(_N_TAPS):
-                i = start + np.uint64(a) * row_stride
-                partial = (
-                    wx0 * flat_planes[i]
-                    + wx1 * flat_planes[i + one]
-                    + wx2 * flat_planes[i + np.uint64(2)]
-                    + wx3 * flat_planes[i + np.uint64(3)]
-                    + wx4 * flat_planes[i + np.uint64(4)]
-                    + wx5 * flat_planes[i + np.uint64(5)]
-                )
-                total += weights_y[a, col] * partial
+            total = _block_sum(flat_planes, start, row_stride, one, wx, weights_y, col)
             out[p, row, col] += factor * total
 
 
@@ -258,16 +357,101 @@ def _warp_parallel(
 
 
 @numba.njit(cache=True)
-def _mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, out: np.ndarray) -> None:
+def _accumulate_interleaved(
+    flat_pixels: np.ndarray,
+    nx_in: int,
+    x_src: np.ndarray,
+    y_src: np.ndarray,
+    out: np.ndarray,
+    plane_weights: np.ndarray,
+    scales: np.ndarray,
+    plane_scales: np.ndarray,
+) -> None:
+    """Kernel of :func:`accumulate_warped`; ``flat_pixels`` is ``(ny_in, nx_in, P)`` raveled."""
+    n_planes = plane_weights.shape[0]
+    tap_stride = np.uint64(n_planes)
+    row_stride = np.uint64(nx_in) * tap_stride
+    factors = np.empty(n_planes)
     for row in range(x_src.shape[0]):
+        weights_x, weights_y, first_x, first_y, exact_x, exact_y = _row_weights(x_src, y_src, row)
         for col in range(x_src.shape[1]):
-            x0 = int(math.floor(x_src[row, col])) - 2
-            y0 = int(math.floor(y_src[row, col])) - 2
+            for p in range(n_planes):
+                which = plane_scales[p]
+                weight = plane_weights[p]
+                factors[p] = weight * scales[which, row, col] if which >= 0 else weight
+            if exact_x[col] >= 0 and exact_y[col] >= 0:
+                source = np.uint64(exact_y[col]) * row_stride + np.uint64(exact_x[col]) * tap_stride
+                for p in range(n_planes):
+                    out[p, row, col] += factors[p] * flat_pixels[source + np.uint64(p)]
+                continue
+            wx = (
+                weights_x[0, col],
+                weights_x[1, col],
+                weights_x[2, col],
+                weights_x[3, col],
+                weights_x[4, col],
+                weights_x[5, col],
+            )
+            corner = first_y[col] * row_stride + first_x[col] * tap_stride
+            p = 0
+            while p + 4 <= n_planes:
+                start = corner + np.uint64(p)
+                t0, t1, t2, t3 = _block_sums4(
+                    flat_pixels, start, row_stride, tap_stride, wx, weights_y, col
+                )
+                out[p, row, col] += factors[p] * t0
+                out[p + 1, row, col] += factors[p + 1] * t1
+                out[p + 2, row, col] += factors[p + 2] * t2
+                out[p + 3, row, col] += factors[p + 3] * t3
+                p += 4
+            if p + 2 <= n_planes:
+                start = corner + np.uint64(p)
+                t0, t1 = _block_sums2(
+                    flat_pixels, start, row_stride, tap_stride, wx, weights_y, col
+                )
+                out[p, row, col] += factors[p] * t0
+                out[p + 1, row, col] += factors[p + 1] * t1
+                p += 2
+            if p < n_planes:
+                start = corner + np.uint64(p)
+                total = _block_sum(flat_pixels, start, row_stride, tap_stride, wx, weights_y, col)
+                out[p, row, col] += factors[p] * total
+
+
+@numba.njit(cache=True)
+def _window_or(mask: np.ndarray, x_first: int, y_first: int, nx: int, ny: int) -> np.ndarray:
+    """``result[j, i]``: OR of ``mask`` over the 6x6 block whose first pixel is
+    ``(x_first + i, y_first + j)``; separable, as OR is associative."""
+    rows = np.zeros((ny + _N_TAPS - 1, nx), dtype=np.int32)
+    for j in range(ny + _N_TAPS - 1):
+        for i in range(nx):
+            bits = np.int32(0)
+            for b in range(_N_TAPS):
+                bits |= mask[y_first + j, x_first + i + b]
+            rows[j, i] = bits
+    blocks = np.zeros((ny, nx), dtype=np.int32)
+    for j in range(ny):
+        for i in range(nx):
             bits = np.int32(0)
             for a in range(_N_TAPS):
-                for b in range(_N_TAPS):
-                    bits |= mask[y0 + a, x0 + b]
-            out[row, col] = bits
+                bits |= rows[j + a, i]
+            blocks[j, i] = bits
+    return blocks
+
+
+@numba.njit(cache=True)
+def _mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, out: np.ndarray) -> None:
+    first_x = np.empty(x_src.shape, dtype=np.int64)
+    first_y = np.empty(x_src.shape, dtype=np.int64)
+    for row in range(x_src.shape[0]):
+        for col in range(x_src.shape[1]):
+            first_x[row, col] = int(math.floor(x_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
+            first_y[row, col] = int(math.floor(y_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
+    x_lo, y_lo = first_x.min(), first_y.min()
+    blocks = _window_or(mask, x_lo, y_lo, first_x.max() - x_lo + 1, first_y.max() - y_lo + 1)
+    for row in range(x_src.shape[0]):
+        for col in range(x_src.shape[1]):
+            out[row, col] = blocks[first_y[row, col] - y_lo, first_x[row, col] - x_lo]
 
 
 def _check_positions(
@@ -372,6 +556,75 @@ def warp_planes(
     return out
 
 
+def accumulate_warped(
+    pixels: np.ndarray,
+    x_src: np.ndarray,
+    y_src: np.ndarray,
+    out: np.ndarray,
+    plane_weights: np.ndarray,
+    scales: np.ndarray | None = None,
+    plane_scales: np.ndarray | None = None,
+) -> np.ndarray:
+    """Warp planes stored pixel by pixel and add each with its own weight and scale.
+
+    For every plane ``p`` this adds to ``out[p]`` exactly (bit for bit) what
+    ``plane_weights[p] * scales[plane_scales[p]] * warp_planes(planes)[p]`` would add, or
+    ``plane_weights[p] * warp_planes(planes)[p]`` when ``plane_scales[p]`` is -1. Storing
+    the planes of one input pixel together lets one pass over each 6x6 block serve all of
+    them, and accumulating in the kernel saves the temporaries.
+
+    Parameters
+    ----------
+    pixels : ndarray, shape (ny_in, nx_in, P), float64
+        The ``P`` input planes, interleaved: ``pixels[y, x]`` holds every plane's value
+        at input pixel ``(x, y)``.
+    x_src, y_src : ndarray, shape (ny_out, nx_out), float64
+        Output pixel centres in input pixel coordinates, as for :func:`warp_planes`.
+    out : ndarray, shape (P, ny_out, nx_out), float64
+        C-contiguous accumulator, updated in place.
+    plane_weights : array_like, shape (P,)
+        Finite scalar weight of each plane.
+    scales : ndarray, shape (S, ny_out, nx_out), optional
+        Per-output-pixel factors (e.g. the pixel-area ratio and its square).
+    plane_scales : array_like of int, shape (P,), optional
+        Index into ``scales`` of each plane's factor, -1 for none (default: none).
+
+    Returns
+    -------
+    ndarray
+        ``out``.
+    """
+    pixels = np.asarray(pixels)
+    if pixels.ndim != 3 or pixels.dtype != np.float64:
+        raise ValueError(f"pixels must be a 3-D float64 array, got {pixels.dtype} {pixels.shape}")
+    n_planes = pixels.shape[2]
+    x_src, y_src = _check_positions(x_src, y_src, pixels.shape[:2])
+    out_shape = (n_planes, *x_src.shape)
+    if not isinstance(out, np.ndarray) or out.dtype != np.float64 or out.shape != out_shape:
+        raise ValueError(f"out must be a float64 array of shape {out_shape}")
+    if not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError("out must be C-contiguous and writeable")
+    weights = np.asarray(plane_weights, dtype=np.float64)
+    if weights.shape != (n_planes,) or not np.isfinite(weights).all():
+        raise ValueError(f"plane_weights must be {n_planes} finite numbers")
+    if scales is None:
+        scales = np.ones((1, 1, 1))
+    scales = np.ascontiguousarray(scales, dtype=np.float64)
+    which = np.full(n_planes, -1, dtype=np.int64)
+    if plane_scales is not None:
+        which = np.asarray(plane_scales, dtype=np.int64)
+        if scales.shape[1:] != x_src.shape or which.shape != (n_planes,):
+            raise ValueError("scales must be (S, ny_out, nx_out) with one index per plane")
+        if which.min() < -1 or which.max() >= scales.shape[0]:
+            raise ValueError(f"plane_scales must lie in [-1, {scales.shape[0] - 1}]")
+    if x_src.size and n_planes:
+        flat_pixels = np.ascontiguousarray(pixels).reshape(-1)
+        _accumulate_interleaved(
+            flat_pixels, int(pixels.shape[1]), x_src, y_src, out, weights, scales, which
+        )
+    return out
+
+
 def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.ndarray:
     """OR of the input mask bits over each output pixel's 6x6 kernel footprint.
 
@@ -393,6 +646,7 @@ def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.n
         raise ValueError(f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}")
     x_src, y_src = _check_positions(x_src, y_src, mask.shape)
     out = np.zeros(x_src.shape, dtype=np.int32)
-    if x_src.size:
+    # Most exposures have no flagged pixel near a cell: nothing to spread then.
+    if x_src.size and mask.any():
         _mask_or(np.ascontiguousarray(mask), x_src, y_src, out)
     return out

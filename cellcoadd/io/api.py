@@ -4,7 +4,13 @@ The layout follows the file name: ``.fits`` and ``.fits.fz`` (fitsio), ``.h5`` a
 ``.hdf5`` (h5py). Writes are atomic: the file is written to a hidden temporary file in the
 target directory (``.<name>.tmp-<random>``), flushed to disk and renamed over the target,
 so readers see either the previous file or the complete new one. A process killed
-mid-write can leave such a temporary file behind; it is safe to delete.
+mid-write can leave such a temporary file behind; it is safe to delete. A write that does
+not fit on the disk is refused before it starts, and one that fills the disk midway raises
+``OSError(ENOSPC)`` naming the target and leaves no file behind (except that HDF5 2.0 may
+crash the process instead; see ``docs/reliability.md``).
+
+Files are reproducible: the same patch gives byte-identical files (CFITSIO's time-stamped
+checksum comments are replaced by fixed ones; HDF5 objects carry no timestamps).
 
 Every read verifies checksums by default and raises
 :class:`~cellcoadd.io.errors.CellCoaddFormatError` for anything that is not an intact
@@ -15,11 +21,19 @@ from __future__ import annotations
 
 import os
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
 
-from cellcoadd.io.common import CoaddFile, reading_errors
+from cellcoadd.io.common import (
+    CoaddFile,
+    check_free_space,
+    clear_cfitsio_messages,
+    disk_full_error,
+    reading_errors,
+    stabilise_fits_checksums,
+)
 from cellcoadd.io.fits_format import FitsCoaddFile, check_fits_path, write_fits
 from cellcoadd.io.hdf5_format import Hdf5CoaddFile, write_hdf5
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -90,6 +104,15 @@ def write(
     -------
     Path
         The path written.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists and ``overwrite`` is false.
+    OSError
+        ``errno.ENOSPC`` when the file does not fit on the disk (checked before writing,
+        and detected if the disk fills up during the write); nothing is left behind and a
+        previous file at ``path`` is unchanged.
     """
     if not isinstance(patch_coadd, PatchCoadd):
         raise TypeError(f"expected a PatchCoadd, got {type(patch_coadd).__name__}")
@@ -104,15 +127,38 @@ def write(
     temporary = directory / f".{target.name}.tmp-{secrets.token_hex(8)}"
     if layout == "fits":
         check_fits_path(str(temporary))
+    check_free_space(target, _estimated_size(patch_coadd))
     try:
         _WRITERS[layout](patch_coadd, str(temporary), compress=compress)
+        if layout == "fits":
+            stabilise_fits_checksums(temporary)
         _fsync_file(temporary)
         _publish(temporary, target, overwrite=overwrite)
-    except BaseException:
+    except BaseException as err:
+        full = disk_full_error(target, err) if isinstance(err, Exception) else None
         temporary.unlink(missing_ok=True)
+        if layout == "fits":
+            clear_cfitsio_messages()
+        if full is not None:
+            raise full from err
         raise
     _fsync_directory(directory)
     return target
+
+
+def _estimated_size(patch_coadd: PatchCoadd) -> int:
+    """Upper estimate (bytes) of the uncompressed file holding ``patch_coadd``.
+
+    Pixel bytes plus generous per-plane allowances for FITS headers and padding (two
+    2880-byte blocks each) or HDF5 object headers; compressed files are smaller.
+    """
+    per_plane = 2 * 2880 + 2880
+    total = 8 * 2880 + len(patch_coadd.metadata.model_dump_json())
+    for cell in patch_coadd.values():
+        planes = (cell.image, cell.mask, cell.variance, cell.mfrac, cell.noise, cell.psf)
+        total += sum(plane.nbytes for plane in planes) + 7 * per_plane
+        total += 128 * len(cell.inputs) + 4096  # inputs table rows, identity JSON
+    return total
 
 
 def _publish(temporary: Path, target: Path, *, overwrite: bool) -> None:
@@ -172,12 +218,32 @@ def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
         ``path`` is not an intact cellcoadd patch file of a supported major version.
     """
     name = os.fspath(path)
-    return _READERS[file_format(name)](name, verify=verify)
+    layout = file_format(name)
+    with _fresh_cfitsio_messages(layout):
+        return _READERS[layout](name, verify=verify)
+
+
+@contextmanager
+def _fresh_cfitsio_messages(layout: FileFormat) -> Iterator[None]:
+    """Start and leave FITS reads with an empty CFITSIO message stack.
+
+    A damaged file leaves undecodable messages there even when the failure is detected
+    by our own checks; the next fitsio error anywhere in the process (another reader's,
+    or the caller's own) would then fail to decode them.
+    """
+    if layout != "fits":
+        yield
+        return
+    clear_cfitsio_messages()
+    try:
+        yield
+    finally:
+        clear_cfitsio_messages()
 
 
 def read(path: str | os.PathLike[str], *, verify: bool = True) -> PatchCoadd:
     """Read a whole patch coadd (see :func:`open` for ``verify`` and errors)."""
-    with open(path, verify=verify) as coadd_file:
+    with _fresh_cfitsio_messages(file_format(path)), open(path, verify=verify) as coadd_file:
         cells = {index: coadd_file.read_cell(index) for index in coadd_file.cell_indices}
         with reading_errors(coadd_file.path, "assembling the patch"):
             return PatchCoadd(coadd_file.metadata, cells)
@@ -187,7 +253,7 @@ def read_cell(
     path: str | os.PathLike[str], index: tuple[int, int], *, verify: bool = True
 ) -> CellCoadd:
     """Read one cell, touching only that cell's data (KeyError if the file lacks it)."""
-    with open(path, verify=verify) as coadd_file:
+    with _fresh_cfitsio_messages(file_format(path)), open(path, verify=verify) as coadd_file:
         return coadd_file.read_cell(index)
 
 

@@ -4,13 +4,16 @@ error wrapping and the lazy :class:`CoaddFile` interface."""
 from __future__ import annotations
 
 import abc
+import errno
 import hashlib
 import json
+import mmap
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import fitsio
 import numpy as np
 from astropy.table import Table
 from pydantic import BaseModel
@@ -26,6 +29,15 @@ FILE_KIND = "cellcoadd-patch"
 
 #: Largest metadata JSON accepted, bytes (a guard against corrupted sizes).
 MAX_METADATA_BYTES = 64 * 1024 * 1024
+
+#: Free space (bytes) below which a failed write is blamed on a full disk.
+DISK_FULL_MARGIN = 1 << 20
+
+#: Fixed comments of the FITS checksum cards (CFITSIO writes the current time there).
+_CHECKSUM_COMMENTS = {b"CHECKSUM=": b"HDU checksum", b"DATASUM =": b"data unit checksum"}
+_CARD = 80
+#: Characters the FITS checksum encoding avoids (ASCII punctuation between digits/letters).
+_CHECKSUM_EXCLUDED = frozenset(b":;<=>?@[\\]^_`")
 
 #: Pixel planes of a cell (besides the inputs table).
 PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
@@ -221,15 +233,46 @@ def reading_errors(path: str, what: str) -> Iterator[None]:
     try:
         yield
     except CellCoaddFormatError:
+        clear_cfitsio_messages()
         raise
     except Exception as err:  # a corrupted file may fail in any library call
+        clear_cfitsio_messages()
         raise CellCoaddFormatError(path, f"{what}: {type(err).__name__}: {err}") from err
 
 
+#: A path no file can have (a file is not a directory), opened to drain CFITSIO messages.
+_NO_SUCH_FITS_FILE = os.path.join(os.devnull, "cellcoadd-no-such-file.fits")
+
+
+def clear_cfitsio_messages() -> None:
+    """Empty CFITSIO's process-wide stack of error messages.
+
+    fitsio takes messages off that stack only when it raises an error, and only as many as
+    fit its 1 kB buffer. What a damaged file leaves there (any bytes, from its corrupted
+    header) is then attached to the next, unrelated CFITSIO error, which fitsio cannot
+    decode: even opening an intact file would fail. fitsio has no call to clear the stack,
+    so it is drained by failing to open a file that cannot exist until an error comes back
+    short (the stack was empty).
+    """
+    for _ in range(8):
+        try:
+            fitsio.FITS(_NO_SUCH_FITS_FILE).close()
+        except UnicodeDecodeError:  # undecodable leftovers, now removed: drain on
+            continue
+        except OSError as err:
+            if len(str(err)) < 512:
+                return
+            continue
+        return
+
+
 def check_path_readable(path: str) -> int:
-    """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty."""
+    """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty
+    or not a regular file (a directory, a pipe or a device could block or mislead a reader)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
+    if not os.path.isfile(path):
+        raise CellCoaddFormatError(path, "not a regular file")
     size = os.path.getsize(path)
     if size == 0:
         raise CellCoaddFormatError(path, "the file is empty")
@@ -293,3 +336,146 @@ class CoaddFile(abc.ABC):
             f"<{type(self).__name__} {self.path!r}: tract {meta.tract} patch {meta.patch} "
             f"band {meta.band!r}, {len(self.cell_indices)} cells>"
         )
+
+
+# ------------------------------------------------------------------ safe, reproducible writes
+
+
+def check_free_space(target: str | os.PathLike[str], needed: int) -> None:
+    """Refuse to start a write of about ``needed`` bytes that cannot fit on the disk.
+
+    Writing into a full disk is worse than refusing up front: HDF5 2.0 cannot close a file
+    whose flush failed (the process then crashes at exit) and CFITSIO reports unrelated
+    errors. File systems that report no size at all (some network mounts) are not checked.
+
+    Raises
+    ------
+    OSError
+        ``errno.ENOSPC``, naming ``target`` and the space needed and free.
+    """
+    directory = os.path.dirname(os.path.abspath(target))
+    try:
+        stats = os.statvfs(directory)
+    except (OSError, AttributeError):  # no statvfs on this platform or mount
+        return
+    if stats.f_blocks == 0:
+        return
+    free = stats.f_bavail * stats.f_frsize
+    if free < needed:
+        raise OSError(
+            errno.ENOSPC,
+            f"disk full: writing needs up to {needed} bytes but only {free} are free in "
+            f"{directory}; nothing was written",
+            os.fspath(target),
+        )
+
+
+def disk_full_error(target: str | os.PathLike[str], error: BaseException) -> OSError | None:
+    """A clear ``ENOSPC`` error if ``error`` (raised while writing ``target``) came from a
+    full disk or exhausted quota, else None.
+
+    CFITSIO does not pass the system error on, so a failure while the target's file
+    system has less than :data:`DISK_FULL_MARGIN` free is taken to be a full disk too.
+    Call this before removing the partial file, whose blocks are part of the evidence.
+    """
+    code = getattr(error, "errno", None)
+    text = str(error)
+    full = code in (errno.ENOSPC, errno.EDQUOT) or any(
+        phrase in text for phrase in ("No space left on device", "Disk quota exceeded")
+    )
+    directory = os.path.dirname(os.path.abspath(target))
+    free: int | None = None
+    try:
+        stats = os.statvfs(directory)
+        if stats.f_blocks > 0:
+            free = stats.f_bavail * stats.f_frsize
+    except (OSError, AttributeError):
+        pass
+    if not full and (free is None or free >= DISK_FULL_MARGIN):
+        return None
+    where = f"{directory} has {free} bytes free" if free is not None else directory
+    return OSError(
+        errno.ENOSPC,
+        f"disk full or quota exceeded while writing ({where}); nothing was written and any "
+        f"previous file is unchanged [{type(error).__name__}: {_first_line(text)}]",
+        os.fspath(target),
+    )
+
+
+def _first_line(text: str) -> str:
+    return text.strip().splitlines()[0] if text.strip() else ""
+
+
+def stabilise_fits_checksums(path: str | os.PathLike[str]) -> None:
+    """Give the CHECKSUM/DATASUM cards of every HDU of ``path`` fixed comments.
+
+    CFITSIO stamps the current time into the comments of these cards, so the same data
+    written twice would differ byte-wise. This rewrites each comment (in place, headers
+    only) and recomputes CHECKSUM for the new header with the standard FITS algorithm
+    (32-bit ones' complement sum, ASCII encoding), keeping DATASUM, which covers the
+    unchanged data. Readers verify the result like any FITS checksum.
+    """
+    with fitsio.FITS(os.fspath(path)) as fits:
+        offsets = [hdu.get_offsets() for hdu in fits]
+    with open(path, "r+b") as stream, mmap.mmap(stream.fileno(), 0) as mapped:
+        for extent in offsets:
+            start, stop = extent["header_start"], extent["data_start"]
+            header = bytearray(mapped[start:stop])
+            if _stable_checksum_header(header):
+                mapped[start:stop] = header
+        mapped.flush()
+
+
+def _find_card(header: bytearray, key: bytes) -> int:
+    """Offset of the card starting with ``key`` (name and ``=``), or -1."""
+    offset = header.find(key)
+    while offset >= 0 and offset % _CARD:
+        offset = header.find(key, offset + 1)
+    return offset
+
+
+def _stable_checksum_header(header: bytearray) -> bool:
+    """Rewrite the checksum cards of one header in place; False if it has none."""
+    cards = {key: _find_card(header, key) for key in _CHECKSUM_COMMENTS}
+    if min(cards.values()) < 0:
+        return False
+    for key, offset in cards.items():
+        card = bytes(header[offset : offset + _CARD])
+        closing = card.index(b"'", 11)  # string values start at column 11
+        slash = card.find(b"/", closing)
+        value = card[: slash if slash > 0 else closing + 1]
+        header[offset : offset + _CARD] = (value + b"/ " + _CHECKSUM_COMMENTS[key]).ljust(_CARD)
+    datasum_card = bytes(header[cards[b"DATASUM ="] : cards[b"DATASUM ="] + _CARD])
+    datasum = int(datasum_card[11 : datasum_card.index(b"'", 11)].strip() or b"0")
+    checksum_value = slice(cards[b"CHECKSUM="] + 11, cards[b"CHECKSUM="] + 27)
+    header[checksum_value] = b"0" * 16
+    header[checksum_value] = _encode_checksum(_ones_complement_sum(bytes(header), datasum))
+    return True
+
+
+def _ones_complement_sum(data: bytes, initial: int = 0) -> int:
+    """32-bit ones' complement sum of big-endian words (FITS checksum convention)."""
+    total = int(np.frombuffer(data, dtype=">u4").sum(dtype=np.uint64)) + initial
+    while total >> 32:
+        total = (total & 0xFFFFFFFF) + (total >> 32)
+    return total
+
+
+def _encode_checksum(total: int) -> bytes:
+    """16-character ASCII encoding of the complement of ``total`` (FITS checksum standard)."""
+    value = 0xFFFFFFFF - total
+    encoded = [0] * 16
+    for byte_index in range(4):
+        byte = (value >> (24 - 8 * byte_index)) & 0xFF
+        quotient, remainder = byte // 4 + 0x30, byte % 4
+        chars = [quotient + remainder, quotient, quotient, quotient]
+        # Shift pairs off punctuation; each pair keeps its sum, so the checksum holds.
+        while any(c in _CHECKSUM_EXCLUDED for c in chars):
+            for first in (0, 2):
+                if chars[first] in _CHECKSUM_EXCLUDED or chars[first + 1] in _CHECKSUM_EXCLUDED:
+                    chars[first] += 1
+                    chars[first + 1] -= 1
+        for position in range(4):
+            encoded[4 * position + byte_index] = chars[position]
+    # The standard rotates the string one character to the right.
+    return bytes(encoded[15:] + encoded[:15])

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 import warnings
 from pathlib import Path
 from typing import Any
@@ -50,9 +50,15 @@ from astropy.io import fits
 from astropy.wcs import WCS, Sip
 
 from cellcoadd.geometry.box import Box
+from cellcoadd.io.common import (
+    check_free_space,
+    clear_cfitsio_messages,
+    disk_full_error,
+    stabilise_fits_checksums,
+)
 from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.psf_codec import GridPsf, VaryingPsf, can_encode, decode_psf, encode_psf
-from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
 
 EXPOSURE_FORMAT = "cellcoadd-exposure"
@@ -69,18 +75,30 @@ def write_exposure(
     """Write ``exposure`` to the FITS file ``path`` atomically.
 
     The file is written to a temporary file in the same directory, flushed to disk and
-    renamed onto ``path``, so a reader never sees a partial file.
+    renamed onto ``path``, so a reader never sees a partial file. The same exposure gives
+    a byte-identical file (the checksum cards carry fixed comments, not the time).
 
     Raises
     ------
     FileExistsError
         When ``path`` exists and ``overwrite`` is false.
+    ExposureError
+        When the PSF cannot be stored (its callable fails, returns something other than a
+        GSObject, or gives non-finite or empty stamps); nothing is written.
+    OSError
+        ``errno.ENOSPC`` when the file does not fit on the disk; nothing is left behind.
     """
     target = Path(path)
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
     header_wcs, wcs_exact = _wcs_cards(exposure.wcs)
-    psf_kind, psf_meta, psf_array = _psf_payload(exposure)
+    try:
+        psf_kind, psf_meta, psf_array = _psf_payload(exposure)
+    except Exception as err:  # a user PSF model can fail in any way
+        raise ExposureError(
+            f"exposure (visit={exposure.visit}, detector={exposure.detector}): its PSF cannot "
+            f"be stored: {type(err).__name__}: {err}"
+        ) from err
     scalar_variance = isinstance(exposure.variance, float)
     box = exposure.valid_box
     meta = {
@@ -129,7 +147,10 @@ def write_exposure(
         for hdu in fits_file:
             hdu.write_checksum()
 
-    _atomic_fits_write(target, write)
+    arrays = [exposure.image, exposure.mask, meta_bytes]
+    arrays += [a for a in (psf_array, exposure.variance) if isinstance(a, np.ndarray)]
+    needed = sum(a.nbytes for a in arrays) + 2880 * (8 + 2 * len(arrays))
+    _atomic_fits_write(target, write, needed)
     return target
 
 
@@ -142,6 +163,11 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
         For a missing, unreadable, truncated, corrupted (checksum) or inconsistent file,
         or one of another kind; never another exception type.
     """
+    if os.path.exists(path) and not os.path.isfile(path):
+        # a directory, pipe or device: CFITSIO could block on it
+        raise CellCoaddFormatError(path, "not a regular file")
+    # start and leave with an empty CFITSIO message stack (see cellcoadd.io.api.open)
+    clear_cfitsio_messages()
     try:
         with fitsio.FITS(os.fspath(path)) as fits_file:
             return _read(fits_file)
@@ -149,6 +175,8 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
         raise CellCoaddFormatError(path, err.problem) from None
     except Exception as err:  # any library error on a malformed file becomes a format error
         raise CellCoaddFormatError(path, f"unreadable exposure file ({err})") from err
+    finally:
+        clear_cfitsio_messages()
 
 
 # -- writing helpers -----------------------------------------------------------------
@@ -240,20 +268,33 @@ def _typical_scale(exposure: Exposure) -> float:
     return float(np.sqrt(abs(np.linalg.det(jac))))
 
 
-def _atomic_fits_write(target: Path, write: Any) -> None:
-    """Run ``write(fits)`` on a temporary file next to ``target``, then rename it."""
+def _atomic_fits_write(target: Path, write: Any, needed: int) -> None:
+    """Run ``write(fits)`` on a temporary file next to ``target``, then rename it.
+
+    ``needed`` is an upper estimate of the file size, checked against the free space
+    first; a disk that fills up midway gives ``OSError(ENOSPC)``. Either way no file is
+    left behind.
+    """
     directory = target.parent if str(target.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", dir=directory)
-    os.close(fd)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: no such directory")
+    # created by CFITSIO itself, so it gets the usual permissions (mkstemp would give 0600)
+    tmp_name = str(directory / f".{target.name}.tmp-{secrets.token_hex(8)}")
+    check_free_space(target, needed)
     try:
         with fitsio.FITS(tmp_name, "rw", clobber=True) as fits_file:
             write(fits_file)
+        stabilise_fits_checksums(tmp_name)
         with open(tmp_name, "rb") as handle:
             os.fsync(handle.fileno())
         os.replace(tmp_name, target)
-    except BaseException:
+    except BaseException as err:
+        full = disk_full_error(target, err) if isinstance(err, Exception) else None
         if os.path.exists(tmp_name):
             os.remove(tmp_name)
+        clear_cfitsio_messages()
+        if full is not None:
+            raise full from err
         raise
     try:  # make the rename itself durable where the platform allows it
         dir_fd = os.open(directory, os.O_RDONLY)

@@ -65,6 +65,10 @@ def _write_cell(cells: h5py.Group, cell: CellCoadd, *, compress: bool) -> None:
     for plane, dtype in _DTYPES.items():
         _write_dataset(group, plane, getattr(cell, plane).astype(dtype, copy=False), compress)
     _write_dataset(group, "inputs", common.inputs_to_array(cell.inputs, ascii_only=False), compress)
+    for name in (*_DTYPES, "inputs"):
+        # planes share shape and dtype: the name travels with the data so that a moved or
+        # swapped dataset is refused rather than read as another plane
+        group[name].attrs["plane"] = np.bytes_(name)
 
 
 def _write_dataset(group: h5py.Group, name: str, data: np.ndarray, compress: bool) -> None:
@@ -160,6 +164,8 @@ class Hdf5CoaddFile(common.CoaddFile):
                 if (dataset.dtype.kind, dataset.dtype.itemsize) != (dtype.kind, dtype.itemsize):
                     raise ValueError(f"dtype {dataset.dtype}, expected {dtype}")
                 self._check_checksummed(dataset)
+                if _attr_text(dataset.attrs.get("plane", b"")) != plane:
+                    raise ValueError(f"dataset {dataset.name} does not hold plane {plane!r}")
                 planes[plane] = dataset[()]
         inputs = self._read_inputs(key, group)
         with common.reading_errors(self.path, f"cell {key} contents"):

@@ -46,6 +46,8 @@ _GSPARAMS_NAMES = tuple(
     if f"_{name}" in vars(galsim.GSParams())
 )
 _MAX_DEPTH = 32
+#: Largest side (samples) of a sampled PSF stamp; larger means a unit mistake.
+MAX_STAMP_SIZE = 1025
 Poly = tuple[tuple[int, int, float], ...]
 
 
@@ -330,6 +332,8 @@ class GridPsf:
                 raise ValueError("GridPsf nodes must be strictly increasing")
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise ValueError("GridPsf scale must be positive")
+        if not np.all(np.isfinite(self.stamps)) or not np.all(self.stamps.sum(axis=(2, 3)) > 0):
+            raise ValueError("GridPsf stamps must be finite with positive sums")
 
     @classmethod
     def sample(
@@ -350,8 +354,19 @@ class GridPsf:
         y_nodes = grid_nodes(ny, n_nodes)
         scale = pixel_scale / oversample
         profiles = [[psf(float(x), float(y)) for x in x_nodes] for y in y_nodes]
+        for row in profiles:
+            for profile in row:
+                if not isinstance(profile, galsim.GSObject):
+                    raise PsfCodecError(
+                        f"the PSF callable returned a {type(profile).__name__}, not a GSObject"
+                    )
         size = max(p.getGoodImageSize(scale) for row in profiles for p in row)
         size += 1 - size % 2
+        if size > MAX_STAMP_SIZE:
+            raise PsfCodecError(
+                f"the PSF needs {size} x {size} samples of {scale:.3g} arcsec, more than "
+                f"{MAX_STAMP_SIZE}: is its size in arcsec?"
+            )
         stamps = np.array(
             [
                 [p.drawImage(nx=size, ny=size, scale=scale, method="no_pixel").array for p in row]

@@ -16,6 +16,7 @@ same way into the exposure matches the PSF exactly. Three forms are accepted:
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -25,6 +26,7 @@ from astropy.wcs import WCS
 
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, local_jacobian
+from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 
 PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
@@ -77,20 +79,31 @@ class Exposure:
 
     def __post_init__(self) -> None:
         name = f"exposure (visit={self.visit}, detector={self.detector})"
+        for field_name in ("visit", "detector"):
+            value = getattr(self, field_name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ExposureError(f"{name}: {field_name} must be an integer, got {value!r}")
+            setattr(self, field_name, int(value))
+        try:
+            # surrounding spaces survive exposure files but not coadd input tables,
+            # where build_patch refuses them
+            check_band_name(self.band.strip(" ") if isinstance(self.band, str) else "")
+        except ValueError as err:
+            raise ExposureError(f"{name}: {err} (band={self.band!r})") from None
         self.image = np.asarray(self.image)
         if self.image.ndim != 2 or self.image.size == 0:
             raise ExposureError(f"{name}: image must be a non-empty 2-D array")
+        if self.image.dtype.kind not in "biuf":
+            raise ExposureError(f"{name}: image must be real-valued, got dtype {self.image.dtype}")
         if not np.issubdtype(self.image.dtype, np.floating):
             self.image = self.image.astype(np.float64)
-        if not isinstance(self.wcs, WCS) or not self.wcs.has_celestial:
-            raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
-        self.wcs = canonical_wcs(self.wcs)
-        if not np.isfinite(self.zero_point) or not -50.0 < self.zero_point < 100.0:
-            raise ExposureError(
-                f"{name}: zero_point {self.zero_point} is not a plausible magnitude"
-            )
-        if not isinstance(self.band, str) or not self.band:
-            raise ExposureError(f"{name}: band must be a non-empty string")
+        self.wcs = _checked_wcs(name, self.wcs, self.image.shape)
+        zero_point = self.zero_point
+        if isinstance(zero_point, bool) or not isinstance(zero_point, numbers.Real):
+            raise ExposureError(f"{name}: zero_point must be a number, got {zero_point!r}")
+        if not np.isfinite(zero_point) or not -50.0 < zero_point < 100.0:
+            raise ExposureError(f"{name}: zero_point {zero_point} is not a plausible magnitude")
+        self.zero_point = float(zero_point)
         if self.mask is None:
             self.mask = np.zeros(self.image.shape, dtype=np.int32)
         self.mask = np.asarray(self.mask)
@@ -100,15 +113,12 @@ class Exposure:
         if unknown:
             raise ExposureError(f"{name}: mask has bits {unknown:#x} with no name in mask_bits")
         self.mask = self.mask.astype(np.int32, copy=False)
-        if np.ndim(self.variance) == 0:
-            self.variance = float(self.variance)
-        else:
-            self.variance = np.asarray(self.variance, dtype=np.float64)
-            if self.variance.shape != self.image.shape:
-                raise ExposureError(f"{name}: variance array must have the image's shape")
+        self.variance = _checked_variance(name, self.variance, self.image.shape)
         full = Box.from_shape(self.image.shape)
         if self.valid_box is None:
             self.valid_box = full
+        elif not isinstance(self.valid_box, Box):
+            raise ExposureError(f"{name}: valid_box must be a Box, got {self.valid_box!r}")
         elif not full.contains_box(self.valid_box):
             raise ExposureError(f"{name}: valid_box {self.valid_box} exceeds the image {full}")
         bad = ~np.isfinite(self.image) & (self.mask == 0)
@@ -117,9 +127,14 @@ class Exposure:
                 f"{name}: {int(bad.sum())} non-finite pixels are not flagged in the mask"
             )
         if isinstance(self.psf, galsim.Image):
-            ny, nx = self.psf.array.shape
+            stamp = self.psf.array
+            ny, nx = stamp.shape
             if ny != nx or ny % 2 == 0:
-                raise ExposureError(f"{name}: an image PSF must be an odd square stamp")
+                raise ExposureError(
+                    f"{name}: an image PSF must be an odd square stamp, got {ny} x {nx}"
+                )
+            if not (np.all(np.isfinite(stamp)) and stamp.sum() > 0):
+                raise ExposureError(f"{name}: an image PSF must be finite with a positive sum")
         elif not (isinstance(self.psf, galsim.GSObject) or callable(self.psf)):
             raise ExposureError(f"{name}: psf must be a GSObject, a callable or a galsim.Image")
 
@@ -134,10 +149,14 @@ class Exposure:
 
     @property
     def background_variance(self) -> float:
-        """Median variance over the valid pixels (counts^2): the basis of the coadd weight."""
+        """Median variance over the valid pixels (counts^2): the basis of the coadd weight.
+
+        Non-finite values (usually at masked pixels) are left out; NaN if none is left.
+        """
         if isinstance(self.variance, float):
             return self.variance
         values = self.variance[self.valid_box.slices]
+        values = values[np.isfinite(values)]
         return float(np.median(values)) if values.size else float("nan")
 
     def local_jacobian(self, x: float, y: float) -> np.ndarray:
@@ -170,3 +189,56 @@ class Exposure:
     def psf_includes_pixel(self) -> bool:
         """Whether :meth:`psf_profile` already contains the pixel response."""
         return isinstance(self.psf, galsim.Image)
+
+
+def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:
+    """``wcs`` in canonical form, if it is a usable equatorial celestial WCS of the image.
+
+    Refused: non-celestial WCSs, other frames (galactic, ecliptic: their longitudes would
+    be taken for RA), more than two pixel axes, and a singular or non-finite pixel scale
+    at the image centre.
+    """
+    if not isinstance(wcs, WCS):
+        raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
+    try:
+        celestial, n_axes = wcs.has_celestial, wcs.pixel_n_dim
+        if celestial and n_axes == 2:
+            wcs = canonical_wcs(wcs)
+            axes = (wcs.wcs.lngtyp, wcs.wcs.lattyp)
+            ny, nx = shape
+            jacobian = local_jacobian(wcs, (nx - 1) / 2.0, (ny - 1) / 2.0)
+    except Exception as err:  # astropy raises several types for broken WCSs
+        raise ExposureError(f"{name}: the WCS cannot be evaluated ({_one_line(err)})") from None
+    if not celestial:
+        raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
+    if n_axes != 2:
+        raise ExposureError(
+            f"{name}: wcs must have 2 pixel axes, got {n_axes} (pass wcs.celestial)"
+        )
+    if axes != ("RA", "DEC"):
+        raise ExposureError(f"{name}: wcs must be in RA/Dec, got {axes[0]}/{axes[1]} axes")
+    area = abs(float(np.linalg.det(jacobian))) if np.all(np.isfinite(jacobian)) else 0.0
+    if not area > 0.0:
+        raise ExposureError(f"{name}: the WCS is singular or not finite at the image centre")
+    return wcs
+
+
+def _one_line(err: Exception) -> str:
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return "; ".join(lines) or type(err).__name__
+
+
+def _checked_variance(name: str, variance: object, shape: tuple[int, ...]) -> float | np.ndarray:
+    """A scalar (float) or an image-shaped float64 array; zero, negative or non-finite
+    values are allowed here and lead to per-cell rejections (``bad_weight``)."""
+    if np.ndim(variance) == 0:
+        try:
+            return float(variance)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise ExposureError(f"{name}: variance must be a number or an array") from None
+    array = np.asarray(variance)
+    if array.dtype.kind not in "biuf":
+        raise ExposureError(f"{name}: variance must be real-valued, got dtype {array.dtype}")
+    if array.shape != shape:
+        raise ExposureError(f"{name}: variance array must have the image's shape")
+    return array.astype(np.float64, copy=False)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 import re
-from functools import cached_property
 from collections.abc import Iterator, Mapping
+from functools import cached_property
 from typing import Literal
 
 import numpy as np

@@ -1,0 +1,177 @@
+"""Storage speed: whole-patch write and read against reading one cell, FITS and HDF5.
+
+The job: a full LSST-default patch, 22 x 22 cells (20 x 20 inner plus one border ring) of
+250 x 250 px with K = 3 noise realizations, a 35 x 35 PSF and 20 input records per cell,
+synthesized directly as a :class:`~cellcoadd.model.patch_coadd.PatchCoadd` (noise-like
+float planes, so lossless compression gains what it would on real coadds' noise).
+
+For each layout (FITS and HDF5, uncompressed and lossless-compressed) it writes the patch
+(``cellcoadd.io.write``, atomic, checksums), reads it back whole (``read``, checksums
+verified) and reads single cells (``read_cell``: open, find the cell, read it, verify it,
+close), with medians of repeated runs. Rates are in-memory megabytes of pixel data per
+second. Reads come from the page cache (the file was just written), which isolates the
+library's own cost from the disk. The target: ``read_cell`` at least 50 times faster than
+reading the whole patch.
+
+Run as ``.venv/bin/python benchmarks/bench_io.py [--repeats N] [--dir DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import galsim
+import numpy as np
+from common import format_table, lsst_skymap, machine_summary, median_seconds
+
+import cellcoadd.io as cio
+from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.model.cell_coadd import CellCoadd
+from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+
+PATCH_INDEX = (5, 5)
+N_INPUTS = 20
+LAYOUTS = (
+    ("FITS", "patch.fits", "none"),
+    ("FITS tile-compressed", "patch.fits.fz", "lossless"),
+    ("HDF5", "patch.h5", "none"),
+    ("HDF5 gzip", "patch-gzip.h5", "lossless"),
+)
+
+
+def synthetic_patch(seed: int, n_noise: int = 3, psf_size: int = 35) -> PatchCoadd:
+    """A full patch of plausible cells: noise images, a few masked pixels, a Moffat PSF."""
+    rng = np.random.default_rng(seed)
+    tract = lsst_skymap()[0]
+    patch = tract.patch(*PATCH_INDEX)
+    config = BuildConfig(n_noise=n_noise, psf_size=psf_size)
+    psf = galsim.Moffat(beta=3.5, fwhm=0.9).drawImage(nx=psf_size, ny=psf_size, scale=0.2).array
+    psf = psf.astype(np.float64) / psf.sum()
+    cells = {}
+    for cell in patch.cells:
+        shape = cell.outer_bbox.shape
+        mask = np.zeros(shape, dtype=np.int32)
+        mask[rng.integers(0, shape[0], 20), rng.integers(0, shape[1], 20)] = 1
+        inputs = [
+            InputRecord(
+                visit=int(visit),
+                detector=int(rng.integers(0, 189)),
+                band="i",
+                weight=float(rng.uniform(0.5, 2.0)),
+                status="used",
+                overlap_fraction=1.0,
+                psf_fwhm=float(rng.uniform(0.7, 1.1)),
+                psf_e1=float(rng.normal(0, 0.01)),
+                psf_e2=float(rng.normal(0, 0.01)),
+                psf_T=float(rng.uniform(0.2, 0.4)),
+                zero_point=30.0,
+            )
+            for visit in range(N_INPUTS)
+        ]
+        cells[cell.index] = CellCoadd(
+            image=rng.normal(0.0, 1.0, shape).astype(np.float32),
+            mask=mask,
+            variance=rng.uniform(0.99, 1.01, shape).astype(np.float32),
+            noise=rng.normal(0.0, 1.0, (n_noise, *shape)).astype(np.float32),
+            mfrac=np.zeros(shape, dtype=np.float32),
+            psf=psf,
+            inputs=inputs,
+            tract=cell.tract,
+            index=cell.index,
+            inner_bbox=cell.inner_bbox,
+            outer_bbox=cell.outer_bbox,
+            wcs=cell.wcs,
+        )
+    metadata = PatchMetadata(
+        skymap_config=tract.config,
+        tract=tract.id,
+        tract_center=tract.center,
+        patch=PATCH_INDEX,
+        band="i",
+        units="counts at zero point 30 per coadd pixel",
+        build_config=config,
+    )
+    return PatchCoadd(metadata, cells)
+
+
+def pixel_megabytes(cell: CellCoadd) -> float:
+    """In-memory size of a cell's planes, MB."""
+    planes = (cell.image, cell.mask, cell.variance, cell.noise, cell.mfrac, cell.psf)
+    return sum(plane.nbytes for plane in planes) / 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3, help="whole-patch writes and reads")
+    parser.add_argument("--cell-reads", type=int, default=25, help="read_cell calls per layout")
+    parser.add_argument("--dir", default=None, help="where to write (default: a temp dir)")
+    parser.add_argument("--seed", type=int, default=2)
+    args = parser.parse_args()
+
+    start = time.perf_counter()
+    patch = synthetic_patch(args.seed)
+    made = time.perf_counter() - start
+    indices = list(patch.cells)
+    megabytes = sum(pixel_megabytes(cell) for cell in patch.cells.values())
+    print(f"I/O: {len(indices)} cells, {megabytes:.0f} MB of pixels; {machine_summary()}")
+    print(
+        f"synthesized in {made:.1f} s; whole-patch medians of {args.repeats}, "
+        f"read_cell medians of {args.cell_reads}; warm page cache\n"
+    )
+    rng = np.random.default_rng(args.seed)
+    rows = []
+    with tempfile.TemporaryDirectory(dir=args.dir) as directory:
+        for name, filename, compression in LAYOUTS:
+            path = Path(directory) / filename
+            write_s, _ = median_seconds(
+                lambda path=path, compression=compression: cio.write(
+                    patch, path, compression=compression, overwrite=True
+                ),
+                args.repeats,
+            )
+            read_s, back = median_seconds(lambda path=path: cio.read(path), args.repeats)
+            if not back.equals(patch):
+                raise AssertionError(f"{name}: the patch read back differs from the one written")
+            picks = [indices[k] for k in rng.integers(0, len(indices), args.cell_reads)]
+            durations = []
+            for index in picks:
+                start = time.perf_counter()
+                cell = cio.read_cell(path, index)
+                durations.append(time.perf_counter() - start)
+                if not cell.equals(patch[index]):
+                    raise AssertionError(f"{name}: cell {index} read back differs")
+            cell_s = float(np.median(durations))
+            rows.append(
+                (
+                    name,
+                    os.path.getsize(path) / 1e6,
+                    write_s,
+                    megabytes / write_s,
+                    read_s,
+                    megabytes / read_s,
+                    1e3 * cell_s,
+                    read_s / cell_s,
+                )
+            )
+            path.unlink()
+    header = [
+        "layout",
+        "file MB",
+        "write s",
+        "write MB/s",
+        "read s",
+        "read MB/s",
+        "read_cell ms",
+        "read / read_cell",
+    ]
+    print(format_table(header, rows, ["s", ".0f", ".2f", ".0f", ".2f", ".0f", ".1f", ".0f"]))
+    print("\ntarget: read / read_cell >= 50")
+
+
+if __name__ == "__main__":
+    main()
