@@ -1,6 +1,7 @@
 """Coadding every cell of a patch, in parallel on any ``concurrent.futures`` executor.
 
-Each cell is an independent task that receives only the exposures near it; its result
+Each cell is an independent task that receives only the exposures near it (a process
+pool created here receives all exposures once per process, and tasks carry indices); its result
 depends only on its inputs and the seed, so the patch is bit-identical whatever the
 executor and the number of workers. A failing cell stops the build with an error naming
 the cell and carrying the worker's traceback.
@@ -22,7 +23,7 @@ from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
 from cellcoadd.build.cell import build_cell, check_unique_inputs
-from cellcoadd.build.select import rough_exposure_box
+from cellcoadd.build.select import exposures_near_cells, rough_exposure_box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -36,11 +37,30 @@ class CellBuildError(RuntimeError):
     """Building one cell failed; the message names the cell and holds the traceback."""
 
 
+# The exposures of the build, installed once in each process of a pool this module
+# creates (its initializer), so that cell tasks carry exposure indices instead of pixels.
+# Per-process transport state only: every result depends on the task's arguments alone.
+_pool_exposures: list[Exposure] = []
+
+
+def _install_exposures(exposures: list[Exposure]) -> None:
+    _pool_exposures[:] = exposures
+
+
 def _build_one(
-    cell: Cell, exposures: list[Exposure], config: BuildConfig, seed: int, mask_bits: MaskBits
+    cell: Cell,
+    candidates: list[Exposure] | list[int],
+    config: BuildConfig,
+    seed: int,
+    mask_bits: MaskBits,
 ) -> CellCoadd:
+    """Build one cell from its candidate exposures (or their indices in the pool table)."""
     try:
-        return build_cell(cell, exposures, config, seed, mask_bits=mask_bits)
+        if candidates and isinstance(candidates[0], int):
+            candidates = [_pool_exposures[i] for i in candidates]
+        # the cheap batched search over-selects; the exact test decides, here in the task
+        near = [e for e in candidates if rough_exposure_box(cell, e) is not None]
+        return build_cell(cell, near, config, seed, mask_bits=mask_bits)
     except Exception as err:
         # the traceback text travels with the error across process boundaries
         raise CellBuildError(
@@ -50,9 +70,10 @@ def _build_one(
 
 
 def _resolve_executor(
-    executor: Executor | None, workers: int, scheduler: object | None
+    executor: Executor | None, workers: int, scheduler: object | None, exposures: list[Exposure]
 ) -> tuple[Executor | None, bool]:
-    """The executor to use (None: run serially here) and whether we must shut it down."""
+    """The executor to use (None: run serially here) and whether it is ours (then its
+    processes hold ``exposures`` and we shut it down)."""
     if executor is not None:
         return executor, False
     if scheduler is not None:
@@ -61,13 +82,16 @@ def _resolve_executor(
         client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
         return client.get_executor(), False
     if workers > 1:
-        return ProcessPoolExecutor(max_workers=workers), True
+        pool = ProcessPoolExecutor(
+            max_workers=workers, initializer=_install_exposures, initargs=(exposures,)
+        )
+        return pool, True
     return None, False
 
 
 def _run_on(
     pool: Executor,
-    tasks: list[tuple[Cell, list[Exposure]]],
+    tasks: list[tuple[Cell, list[Exposure] | list[int]]],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
@@ -77,7 +101,8 @@ def _run_on(
     """Build the cells of ``tasks`` on ``pool`` into ``results``; on the first failure,
     cancel what has not started and raise a CellBuildError naming the cell."""
     submitted: list[tuple[Future, Cell]] = [
-        (pool.submit(_build_one, cell, near, config, seed, mask_bits), cell) for cell, near in tasks
+        (pool.submit(_build_one, cell, candidates, config, seed, mask_bits), cell)
+        for cell, candidates in tasks
     ]
     cells = dict(submitted)
     try:
@@ -181,16 +206,19 @@ def build_patch(
         raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
     mask_bits = exposures[0].mask_bits
     cells = patch.cells
+    near = exposures_near_cells(cells, exposures)
+    pool, owned = _resolve_executor(executor, workers, scheduler, exposures)
+    # our own pool already holds the exposures: send indices; other executors get pixels
     tasks = [
-        (cell, [e for e in exposures if rough_exposure_box(cell, e) is not None]) for cell in cells
+        (cell, indices if owned else [exposures[i] for i in indices])
+        for cell, indices in zip(cells, near, strict=True)
     ]
-    pool, owned = _resolve_executor(executor, workers, scheduler)
     results: dict[tuple[int, int], CellCoadd] = {}
     bar = tqdm(total=len(tasks), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if pool is None:
-            for cell, near in tasks:
-                results[cell.index] = _build_one(cell, near, config, seed, mask_bits)
+            for cell, candidates in tasks:
+                results[cell.index] = _build_one(cell, candidates, config, seed, mask_bits)
                 bar.update()
         else:
             _run_on(pool, tasks, config, seed, mask_bits, results, bar)
