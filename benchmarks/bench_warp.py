@@ -32,7 +32,8 @@ import numpy as np
 from common import format_table, interleaved_medians, machine_summary
 from scipy import ndimage
 
-from cellcoadd.build.warp import accumulate_warped, warp_planes
+from cellcoadd.build.accumulate import accumulate_warped
+from cellcoadd.build.warp import warp_planes
 
 OUTPUT_SIZE = 250
 COADD_SCALE = 0.2  # arcsec / px

@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH, warp_mask_or, warp_planes
+from cellcoadd.build.mask_warp import warp_mask_or
+from cellcoadd.build.warp import KERNEL_HALF_WIDTH, warp_planes
 
 
 def reference_warp(plane: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.ndarray:

@@ -13,11 +13,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from cellcoadd.build.accumulate import accumulate_warped
 from cellcoadd.build.mapping import footprint_box
+from cellcoadd.build.mask_warp import warp_mask_or
 from cellcoadd.build.noise import standard_normal_field, tile_rows_read
 from cellcoadd.build.psf import PsfError, draw_exposure_psf, psf_moments
 from cellcoadd.build.select import Candidate, select_exposure
-from cellcoadd.build.warp import accumulate_warped, warp_mask_or, warp_planes
+from cellcoadd.build.warp import warp_planes
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd

@@ -1,0 +1,78 @@
+"""Spreading mask bits through the resampling: the OR over each output pixel's footprint.
+
+The companion of :mod:`cellcoadd.build.warp`: an output pixel carries every bit set in
+the 6 x 6 input pixels its Lanczos-3 taps reach (``floor(x) - 2 .. floor(x) + 3``),
+whatever the kernel weights there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from cellcoadd.build.warp import _N_TAPS, KERNEL_HALF_WIDTH, _check_positions
+
+
+@numba.njit(cache=True)
+def _window_or(mask: np.ndarray, x_first: int, y_first: int, nx: int, ny: int) -> np.ndarray:
+    """``result[j, i]``: OR of ``mask`` over the 6x6 block whose first pixel is
+    ``(x_first + i, y_first + j)``; separable, as OR is associative."""
+    rows = np.zeros((ny + _N_TAPS - 1, nx), dtype=np.int32)
+    for j in range(ny + _N_TAPS - 1):
+        for i in range(nx):
+            bits = np.int32(0)
+            for b in range(_N_TAPS):
+                bits |= mask[y_first + j, x_first + i + b]
+            rows[j, i] = bits
+    blocks = np.zeros((ny, nx), dtype=np.int32)
+    for j in range(ny):
+        for i in range(nx):
+            bits = np.int32(0)
+            for a in range(_N_TAPS):
+                bits |= rows[j + a, i]
+            blocks[j, i] = bits
+    return blocks
+
+
+@numba.njit(cache=True)
+def _mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, out: np.ndarray) -> None:
+    first_x = np.empty(x_src.shape, dtype=np.int64)
+    first_y = np.empty(x_src.shape, dtype=np.int64)
+    for row in range(x_src.shape[0]):
+        for col in range(x_src.shape[1]):
+            first_x[row, col] = int(math.floor(x_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
+            first_y[row, col] = int(math.floor(y_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
+    x_lo, y_lo = first_x.min(), first_y.min()
+    blocks = _window_or(mask, x_lo, y_lo, first_x.max() - x_lo + 1, first_y.max() - y_lo + 1)
+    for row in range(x_src.shape[0]):
+        for col in range(x_src.shape[1]):
+            out[row, col] = blocks[first_y[row, col] - y_lo, first_x[row, col] - x_lo]
+
+
+def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.ndarray:
+    """OR of the input mask bits over each output pixel's 6x6 kernel footprint.
+
+    Parameters
+    ----------
+    mask : ndarray, shape (ny_in, nx_in), int32
+        Input bit mask.
+    x_src, y_src : ndarray, shape (ny_out, nx_out), float64
+        Output pixel centres in input pixel coordinates, as for :func:`warp_planes`.
+
+    Returns
+    -------
+    ndarray, shape (ny_out, nx_out), int32
+        Bits set anywhere in input pixels ``floor(x) - 2 .. floor(x) + 3`` (and in y),
+        regardless of the kernel weights there.
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.dtype != np.int32:
+        raise ValueError(f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}")
+    x_src, y_src = _check_positions(x_src, y_src, mask.shape)
+    out = np.zeros(x_src.shape, dtype=np.int32)
+    # Most exposures have no flagged pixel near a cell: nothing to spread then.
+    if x_src.size and mask.any():
+        _mask_or(np.ascontiguousarray(mask), x_src, y_src, out)
+    return out
