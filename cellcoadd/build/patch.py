@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
 from cellcoadd.build.cell import build_cell, check_unique_inputs
+from cellcoadd.build.executors import resolve_executor
 from cellcoadd.build.select import exposures_near_cells, rough_exposure_box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -67,26 +68,6 @@ def _build_one(
             f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}\n"
             f"{traceback.format_exc()}"
         ) from None
-
-
-def _resolve_executor(
-    executor: Executor | None, workers: int, scheduler: object | None, exposures: list[Exposure]
-) -> tuple[Executor | None, bool]:
-    """The executor to use (None: run serially here) and whether it is ours (then its
-    processes hold ``exposures`` and we shut it down)."""
-    if executor is not None:
-        return executor, False
-    if scheduler is not None:
-        from distributed import Client  # optional: the dask extra
-
-        client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
-        return client.get_executor(), False
-    if workers > 1:
-        pool = ProcessPoolExecutor(
-            max_workers=workers, initializer=_install_exposures, initargs=(exposures,)
-        )
-        return pool, True
-    return None, False
 
 
 def _run_on(
@@ -207,8 +188,11 @@ def build_patch(
     mask_bits = exposures[0].mask_bits
     cells = patch.cells
     near = exposures_near_cells(cells, exposures)
-    pool, owned = _resolve_executor(executor, workers, scheduler, exposures)
-    # our own pool already holds the exposures: send indices; other executors get pixels
+    pool, release = resolve_executor(
+        executor, workers, scheduler, initializer=_install_exposures, initargs=(exposures,)
+    )
+    # a process pool made here holds the exposures: send indices; other executors get pixels
+    owned = isinstance(pool, ProcessPoolExecutor) and release is not None
     tasks = [
         (cell, indices if owned else [exposures[i] for i in indices])
         for cell, indices in zip(cells, near, strict=True)
@@ -224,8 +208,8 @@ def build_patch(
             _run_on(pool, tasks, config, seed, mask_bits, results, bar)
     finally:
         bar.close()
-        if owned:
-            pool.shutdown(wait=True, cancel_futures=True)
+        if release is not None:
+            release()
     metadata = PatchMetadata(
         skymap_config=patch.config,
         tract=patch.tract.id,

@@ -21,7 +21,7 @@ from pydantic import BaseModel
 from cellcoadd.geometry.box import Box
 from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.cell_coadd import CellCoadd, wcs_from_record, wcs_to_record
-from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchMetadata, parse_format_version
 
 #: Marker identifying a cellcoadd patch file (FITS keyword CCFORMAT, HDF5 attribute).
@@ -41,16 +41,6 @@ _CHECKSUM_EXCLUDED = frozenset(b":;<=>?@[\\]^_`")
 
 #: Pixel planes of a cell (besides the inputs table).
 PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
-
-_INPUT_FLOAT_FIELDS = (
-    "weight",
-    "overlap_fraction",
-    "psf_fwhm",
-    "psf_e1",
-    "psf_e2",
-    "psf_T",
-    "zero_point",
-)
 
 
 def sha256_hex(data: bytes) -> str:
@@ -174,7 +164,7 @@ def inputs_to_array(records: list[InputRecord], *, ascii_only: bool) -> np.ndarr
             ("detector", "<i8"),
             ("band", f"S{band_width}"),
             ("status", f"S{status_width}"),
-            *((name, "<f8") for name in _INPUT_FLOAT_FIELDS),
+            *((name, "<f8") for name in FLOAT_FIELDS),
         ]
     )
     table = np.zeros(len(records), dtype=dtype)
@@ -184,7 +174,7 @@ def inputs_to_array(records: list[InputRecord], *, ascii_only: bool) -> np.ndarr
             record.detector,
             bands[row],
             statuses[row],
-            *(getattr(record, name) for name in _INPUT_FLOAT_FIELDS),
+            *(getattr(record, name) for name in FLOAT_FIELDS),
         )
     return table
 
@@ -200,7 +190,7 @@ def inputs_from_array(table: np.ndarray, *, ascii_only: bool) -> list[InputRecor
                 detector=int(row["detector"]),
                 band=_unescape_ascii(band) if ascii_only else band,
                 status=_text(row["status"]),
-                **{name: float(row[name]) for name in _INPUT_FLOAT_FIELDS},
+                **{name: float(row[name]) for name in FLOAT_FIELDS},
             )
         )
     return records

@@ -28,7 +28,8 @@ INPUT_STATUSES: tuple[str, ...] = get_args(InputStatus)
 #: The statuses that mean "rejected", in declaration order.
 REJECTION_REASONS: tuple[str, ...] = INPUT_STATUSES[1:]
 
-_FLOAT_FIELDS = (
+#: The float fields of a record (stored as float64 columns by the file formats).
+FLOAT_FIELDS: tuple[str, ...] = (
     "weight",
     "overlap_fraction",
     "psf_fwhm",
@@ -141,7 +142,7 @@ class InputRecord(BaseModel):
             return False
         return all(
             _float_bits(getattr(self, name)) == _float_bits(getattr(other, name))
-            for name in _FLOAT_FIELDS
+            for name in FLOAT_FIELDS
         )
 
 

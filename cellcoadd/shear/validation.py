@@ -22,14 +22,15 @@ chunking.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from collections.abc import Sequence
+from concurrent.futures import Executor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from tqdm.auto import tqdm
 
+from cellcoadd.build.executors import resolve_executor
 from cellcoadd.shear.metacal import METACAL_TYPES, SHAPE_DTYPE, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
 from cellcoadd.shear.stamp_pairs import (
@@ -140,25 +141,6 @@ def measure_pairs(settings: ValidationSettings, indices: Sequence[int]) -> PairC
     return PairCatalogue.from_pairs([measure_pair(settings, index, cell) for index in indices])
 
 
-def _resolve_executor(
-    executor: Executor | None, workers: int, scheduler: object | None
-) -> tuple[Executor | None, Callable[[], None] | None]:
-    """The executor to use (None: run here) and how to release it if it is ours."""
-    if executor is not None:
-        return executor, None
-    if scheduler is not None:
-        from distributed import Client  # optional: the dask extra
-
-        if isinstance(scheduler, Client):
-            return scheduler.get_executor(), None
-        client = Client(scheduler)  # ours: closed at the end, so nothing lingers
-        return client.get_executor(), client.close
-    if workers > 1:
-        pool = ProcessPoolExecutor(max_workers=workers)
-        return pool, lambda: pool.shutdown(wait=True, cancel_futures=True)
-    return None, None
-
-
 def run_pairs(
     settings: ValidationSettings,
     n_objects: int,
@@ -186,7 +168,7 @@ def run_pairs(
         )
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    pool, release = _resolve_executor(executor, workers, scheduler)
+    pool, release = resolve_executor(executor, workers, scheduler)
     if chunk_size is None:
         # several chunks per worker keep the pool busy and the progress bar moving
         slots = 1 if pool is None else 4 * max(workers, 2)

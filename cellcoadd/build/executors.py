@@ -1,0 +1,50 @@
+"""Choosing where independent tasks run: here, a local process pool, or a dask cluster."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import Any
+
+
+def resolve_executor(
+    executor: Executor | None,
+    workers: int,
+    scheduler: object | None,
+    *,
+    initializer: Callable[..., None] | None = None,
+    initargs: tuple[Any, ...] = (),
+) -> tuple[Executor | None, Callable[[], None] | None]:
+    """The executor to use and how to release it.
+
+    Parameters
+    ----------
+    executor : Executor, optional
+        Used as given (never shut down here).
+    workers : int
+        Size of a local process pool when neither ``executor`` nor ``scheduler`` is given;
+        1 means run serially in this process (``None`` is returned).
+    scheduler : str or distributed.Client, optional
+        A dask.distributed scheduler address (a client is opened, and closed by the
+        release function) or an existing client (left open).
+    initializer, initargs
+        Run in each process of a pool created here (not on other executors).
+
+    Returns
+    -------
+    executor, release
+        ``release`` is None when nothing here was created; otherwise call it when done.
+    """
+    if executor is not None:
+        return executor, None
+    if scheduler is not None:
+        from distributed import Client  # optional: the dask extra
+
+        if isinstance(scheduler, Client):
+            return scheduler.get_executor(), None
+        client = Client(scheduler)  # ours: closed at the end, so nothing lingers
+        return client.get_executor(), client.close
+    if workers > 1:
+        pool = ProcessPoolExecutor(max_workers=workers, initializer=initializer, initargs=initargs)
+        return pool, lambda: pool.shutdown(wait=True, cancel_futures=True)
+    return None, None
