@@ -14,9 +14,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from cellcoadd.build.accumulate import accumulate_warped
+from cellcoadd.build.input_planes import input_planes
 from cellcoadd.build.mapping import footprint_box
 from cellcoadd.build.mask_warp import warp_mask_or
-from cellcoadd.build.noise import standard_normal_field, tile_rows_read
 from cellcoadd.build.psf import PsfError, draw_exposure_psf, psf_moments
 from cellcoadd.build.select import Candidate, select_exposure
 from cellcoadd.build.warp import warp_planes
@@ -46,46 +46,24 @@ class _Sums:
         self.weight = 0.0
 
 
-def _input_pixels(candidate: Candidate, n_noise: int, seed: int, with_mfrac: bool) -> np.ndarray:
-    """The planes to warp over the footprint, interleaved: shape (ny, nx, P), float64.
-
-    Planes: image and K noise realizations (zero-point scaled, masked pixels zeroed),
-    variance (scaled by the flux scale squared) and, if ``with_mfrac``, the bad-pixel
-    indicator whose warp is the masked fraction.
-    """
-    exposure, box = candidate.exposure, candidate.footprint
-    good = ~candidate.bad
-    pixels = np.empty((*box.shape, n_noise + 2 + int(with_mfrac)))
-    pixels[..., 0] = np.where(good, exposure.image[box.slices], 0.0) * candidate.flux_scale
-    if np.isscalar(exposure.variance):
-        sigma = np.sqrt(exposure.variance)
-        pixels[..., 1 + n_noise] = exposure.variance * candidate.flux_scale**2
-    else:
-        sigma = np.sqrt(np.where(candidate.bad, 0.0, exposure.variance[box.slices]))
-        variance = np.where(good, exposure.variance[box.slices], 0.0)
-        pixels[..., 1 + n_noise] = variance * candidate.flux_scale**2
-    # only the noise the kernel reads is drawn (see cellcoadd.build.noise)
-    rows_read = tile_rows_read(candidate.mapping.x, candidate.mapping.y, box)
-    for realization in range(n_noise):
-        field = standard_normal_field(
-            seed, exposure.visit, exposure.detector, realization, box, rows_read
-        )
-        field *= sigma
-        field *= candidate.flux_scale
-        pixels[..., 1 + realization] = field
-    if with_mfrac:
-        pixels[..., 2 + n_noise] = candidate.bad
-    return pixels
-
-
 def _add_exposure(
     sums: _Sums, candidate: Candidate, psf_stamp: np.ndarray, config: BuildConfig, seed: int
 ) -> None:
     exposure, box, mapping = candidate.exposure, candidate.footprint, candidate.mapping
     n_noise = config.n_noise
-    # Without bad pixels the masked-fraction plane is all zeros and adds exactly nothing.
-    with_mfrac = bool(candidate.bad.any())
-    pixels = _input_pixels(candidate, n_noise, seed, with_mfrac)
+    pixels = input_planes(
+        exposure.image[box.slices],
+        exposure.variance if np.isscalar(exposure.variance) else exposure.variance[box.slices],
+        candidate.bad,
+        box,
+        mapping.x,
+        mapping.y,
+        candidate.flux_scale,
+        n_noise,
+        (seed, exposure.visit, exposure.detector),
+    )
+    # without bad pixels the masked-fraction plane would be all zeros: it is left out
+    with_mfrac = pixels.shape[2] == n_noise + 3
     x_local = mapping.x - box.x_start
     y_local = mapping.y - box.y_start
     weight, area = candidate.weight, mapping.area_ratio

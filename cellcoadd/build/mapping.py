@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -37,8 +38,6 @@ _DIFFERENCE_STEP = 0.5
 _UNIT_AREA_TOLERANCE = 1e-8
 _ACCEPT_FRACTION = 0.5
 _MIN_GRID_STEP = 4
-# Bound on |estimate - interpolation| relative to the largest partial sum (see _Deferred).
-_ESTIMATE_ERROR = 1e-10
 
 
 class MappingError(ValueError):
@@ -97,7 +96,7 @@ class PixelMapping:
     -----
     From :func:`map_box`, ``x``, ``y`` and ``area_ratio`` are interpolated from the grid
     on first access (then kept, read-only): most exposures considered for a cell are
-    rejected, and :meth:`estimate_positions` is enough to reject them.
+    rejected on their positions alone and never need the area ratio.
     """
 
     box: Box
@@ -113,20 +112,6 @@ class PixelMapping:
         if _Interpolated.is_deferred(self, "x") and _Interpolated.is_deferred(self, "y"):
             return True  # interpolated from an accepted grid, whose values are all finite
         return bool(np.isfinite(self.x).all() and np.isfinite(self.y).all())
-
-    def estimate_positions(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """``x`` and ``y`` computed cheaply, and a bound on their distance to ``x``, ``y``.
-
-        The bound is far below any pixel-level decision's scale (~1e-7 px) and is 0 when
-        the positions are already at hand. A decision that holds for every position moved
-        by up to the bound is the one ``x`` and ``y`` would give, without computing them.
-        """
-        deferred_x, deferred_y = self.__dict__["_x"], self.__dict__["_y"]
-        if not (isinstance(deferred_x, _Deferred) and isinstance(deferred_y, _Deferred)):
-            return self.x, self.y, 0.0
-        x, x_bound = deferred_x.estimate()
-        y, y_bound = deferred_y.estimate()
-        return x, y, max(x_bound, y_bound)
 
 
 def _snap_unit_area(area_ratio: np.ndarray) -> None:
@@ -189,12 +174,21 @@ def _map_with_area(
     return x_exp[0], y_exp[0], area_ratio
 
 
-def _cubic_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """Matrix ``B`` (len(positions), len(nodes)) with ``f(positions) ~= B @ f(nodes)``.
+class _CubicBasis(NamedTuple):
+    """Piecewise-cubic interpolation weights from uniform nodes to a set of positions.
 
-    Piecewise-cubic Lagrange interpolation on uniformly spaced ``nodes`` (at least 4):
-    each position uses the four nodes around its interval (shifted inwards at the ends),
-    so it is exact for cubics and its error scales as ``spacing^4``.
+    Position ``i`` is ``sum(weights[i, m] * f(nodes[first[i] + m]) for m in range(4))``.
+    """
+
+    first: np.ndarray  # int64 (n,): first of the four nodes used by each position
+    weights: np.ndarray  # float64 (n, 4)
+
+
+def _cubic_basis(nodes: np.ndarray, positions: np.ndarray) -> _CubicBasis:
+    """Lagrange weights of ``positions`` on uniformly spaced ``nodes`` (at least 4).
+
+    Each position uses the four nodes around its interval (shifted inwards at the ends),
+    so the interpolation is exact for cubics and its error scales as ``spacing^4``.
     """
     n_nodes = nodes.size
     spacing = nodes[1] - nodes[0]
@@ -202,15 +196,14 @@ def _cubic_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
     interval = np.clip(np.floor(u).astype(np.int64), 0, n_nodes - 2)
     first = np.clip(interval - 1, 0, n_nodes - 4)
     local = u - first
-    basis = np.zeros((positions.size, n_nodes))
-    rows = np.arange(positions.size)
+    weights = np.ones((positions.size, 4))
     for m in range(4):
-        weight = np.ones_like(local)
         for other in range(4):
             if other != m:
-                weight *= (local - other) / (m - other)
-        basis[rows, first + m] = weight
-    return basis
+                weights[:, m] *= (local - other) / (m - other)
+    for array in (first, weights):
+        array.setflags(write=False)  # shared by every mapping using the grid
+    return _CubicBasis(first, weights)
 
 
 def _axis_nodes(start: int, stop: int, step: int) -> np.ndarray:
@@ -227,35 +220,43 @@ def _exact_mapping(coadd_wcs: WCS, box: Box, exposure_wcs: WCS) -> PixelMapping:
     return _frozen_mapping(box, x_exp, y_exp, area_ratio, 0.0, 0)
 
 
-def _interpolate(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``rows @ values[::2, ::2] @ cols.T``: grid-node values interpolated (see _cubic_basis)."""
-    # einsum, not matmul: BLAS threading costs far more than these tiny products and
-    # competes with the processes building other cells
-    partial = np.einsum("ij,jk->ik", rows, values[::2, ::2])
-    return np.einsum("ik,lk->il", partial, cols)
-
-
 @numba.njit(cache=True)
-def _sparse_product(partial: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``partial @ cols.T`` for cubic bases: each row of ``cols`` has at most four
-    consecutive non-zero entries (``cols`` has at least four columns)."""
-    n_cols, n_nodes = cols.shape
-    window = np.empty(n_cols, dtype=np.int64)  # first of the four entries used per row
-    for col in range(n_cols):
-        first = n_nodes - 4
-        for k in range(n_nodes):
-            if cols[col, k] != 0.0:
-                first = min(k, n_nodes - 4)
-                break
-        window[col] = first
-    out = np.empty((partial.shape[0], n_cols))
-    for row in range(partial.shape[0]):
+def _interpolate_nodes(
+    node_values: np.ndarray,
+    rows_first: np.ndarray,
+    rows_weights: np.ndarray,
+    cols_first: np.ndarray,
+    cols_weights: np.ndarray,
+) -> np.ndarray:
+    """Separable interpolation of ``node_values`` (nodes y, nodes x): rows, then columns."""
+    n_rows, n_cols = rows_first.size, cols_first.size
+    partial = np.empty((n_rows, node_values.shape[1]))
+    for i in range(n_rows):
+        j = rows_first[i]
+        for k in range(node_values.shape[1]):
+            partial[i, k] = (
+                rows_weights[i, 0] * node_values[j, k] + rows_weights[i, 1] * node_values[j + 1, k]
+            ) + (
+                rows_weights[i, 2] * node_values[j + 2, k]
+                + rows_weights[i, 3] * node_values[j + 3, k]
+            )
+    out = np.empty((n_rows, n_cols))
+    for i in range(n_rows):
         for col in range(n_cols):
-            k = window[col]
-            out[row, col] = (
-                partial[row, k] * cols[col, k] + partial[row, k + 1] * cols[col, k + 1]
-            ) + (partial[row, k + 2] * cols[col, k + 2] + partial[row, k + 3] * cols[col, k + 3])
+            k = cols_first[col]
+            out[i, col] = (
+                cols_weights[col, 0] * partial[i, k] + cols_weights[col, 1] * partial[i, k + 1]
+            ) + (
+                cols_weights[col, 2] * partial[i, k + 2] + cols_weights[col, 3] * partial[i, k + 3]
+            )
     return out
+
+
+def _interpolate(values: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
+    """Interpolate from the grid nodes, ``values[::2, ::2]`` (the odd indices of the dense
+    grid are the check points between nodes), to the positions of ``rows`` x ``cols``."""
+    nodes = np.ascontiguousarray(values[::2, ::2])
+    return _interpolate_nodes(nodes, rows.first, rows.weights, cols.first, cols.weights)
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,25 +264,11 @@ class _Deferred:
     """A pixel-level quantity interpolated from its grid values when first needed."""
 
     values: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
+    rows: _CubicBasis
+    cols: _CubicBasis
 
     def evaluate(self) -> np.ndarray:
         return _interpolate(self.values, self.rows, self.cols)
-
-    def estimate(self) -> tuple[np.ndarray, float]:
-        """The interpolation summed another way (a few times cheaper), with an error bound.
-
-        The first product is the same as :meth:`evaluate`'s; the second skips the zero
-        basis weights (four of a row's are not). Both sums of at most ``K`` products of
-        size ``<= |partial| * sum|cols|`` (``sum|cols| <= 1.25`` for cubic Lagrange
-        weights) are within ``K * 2^-52`` of that of the exact sum, so they differ by less
-        than ``_ESTIMATE_ERROR * max(1, max|partial|)`` for any ``K`` up to ~1e5.
-        """
-        partial = np.einsum("ij,jk->ik", self.rows, self.values[::2, ::2])
-        estimate = _sparse_product(partial, np.ascontiguousarray(self.cols))
-        bound = _ESTIMATE_ERROR * max(1.0, float(np.abs(partial).max()))
-        return estimate, bound
 
 
 def _frozen_mapping(
@@ -309,14 +296,11 @@ class _AxisGrid:
         # Nodes and the midpoints between them; the midpoints (odd indices) are check points.
         self.dense = np.linspace(self.nodes[0], self.nodes[-1], 2 * self.nodes.size - 1)
         self.dense_basis = _cubic_basis(self.nodes, self.dense)
-        self.dense_basis.setflags(write=False)  # shared by every mapping using the grid
 
     @cached_property
-    def pixel_basis(self) -> np.ndarray:
+    def pixel_basis(self) -> _CubicBasis:
         """Basis interpolating to every pixel centre (needed once a grid is accepted)."""
-        basis = _cubic_basis(self.nodes, np.arange(self.start, self.stop, dtype=np.float64))
-        basis.setflags(write=False)
-        return basis
+        return _cubic_basis(self.nodes, np.arange(self.start, self.stop, dtype=np.float64))
 
 
 def _axis_grid(start: int, stop: int, step: int, cache: dict) -> _AxisGrid:

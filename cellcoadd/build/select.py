@@ -8,12 +8,9 @@ exposure considered gets an :class:`InputRecord` saying what happened to it.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
-import numba
 import numpy as np
 from astropy.wcs.wcs import NoConvergence
 
@@ -122,40 +119,6 @@ def exposures_near_cells(
     return near
 
 
-class _Positions(NamedTuple):
-    """Exposure pixel positions, as :func:`footprint_box` takes them."""
-
-    x: np.ndarray
-    y: np.ndarray
-
-
-@numba.njit(cache=True)
-def _clear_of(values: np.ndarray, lines: np.ndarray, bound: float) -> bool:
-    """Whether no value lies within ``bound`` of any of ``lines``, nor its minimum or
-    maximum within ``bound`` of an integer (where its floor is decided)."""
-    low, high = np.inf, -np.inf
-    for value in values.flat:
-        if not math.isfinite(value):
-            return False
-        for line in lines:
-            if abs(value - line) <= bound:
-                return False
-        low, high = min(low, value), max(high, value)
-    for extreme in (low, high):
-        if math.floor(extreme - bound) != math.floor(extreme + bound):
-            return False
-    return True
-
-
-def _decided_alike(valid: Box, x: np.ndarray, y: np.ndarray, bound: float) -> bool:
-    """Whether positions known to within ``bound`` px decide selection exactly as the exact
-    ones do: which are inside ``valid`` (none within ``bound`` of its edges) and the
-    footprint (the floors of the extreme positions)."""
-    x_edges = np.array([valid.x_start - 0.5, valid.x_stop - 0.5])
-    y_edges = np.array([valid.y_start - 0.5, valid.y_stop - 0.5])
-    return _clear_of(x, x_edges, bound) and _clear_of(y, y_edges, bound)
-
-
 def select_exposure(
     cell: Cell,
     exposure: Exposure,
@@ -184,11 +147,7 @@ def select_exposure(
     except Exception:
         return "no_overlap", {"overlap_fraction": 0.0}
     valid = exposure.valid_box
-    # Most candidates are rejected on their positions alone: decide on cheap estimates of
-    # them, unless one is too close to a boundary for the estimate to be trusted.
-    x, y, bound = mapping.estimate_positions()
-    if bound > 0.0 and not _decided_alike(valid, x, y, bound):
-        x, y = mapping.x, mapping.y
+    x, y = mapping.x, mapping.y
     inside = valid.contains(x, y)
     overlap_fraction = float(np.mean(inside))
     if overlap_fraction == 0.0:
@@ -196,7 +155,7 @@ def select_exposure(
     if not mapping.is_complete:
         # part of the cell falls off the exposure's projection: it cannot cover the cell
         return "edge", {"overlap_fraction": overlap_fraction}
-    footprint = footprint_box(_Positions(x, y))
+    footprint = footprint_box(mapping)
     if not valid.contains_box(footprint):
         return "edge", {"overlap_fraction": overlap_fraction}
     flux_scale = 10.0 ** (0.4 * (config.zero_point - exposure.zero_point))
