@@ -280,14 +280,19 @@ def test_flipped_bytes_are_caught(good_file, tmp_path):
 
 
 def rewrite_without(source, target, drop: str | None = None, edit=None) -> None:
-    """Copy an exposure file HDU by HDU, optionally dropping one or editing headers."""
+    """Copy an exposure file HDU by HDU, optionally dropping one or editing headers.
+
+    The copy has fresh CHECKSUM/DATASUM cards and no DATACRC (like files written before
+    it existed), so only the edit itself can make it unreadable."""
     with fitsio.FITS(os.fspath(source)) as src, fitsio.FITS(os.fspath(target), "rw") as dst:
         for hdu in src:
             name = hdu.get_extname()
             if name == drop:
                 continue
             header = [
-                r for r in hdu.read_header().records() if r["name"] not in ("CHECKSUM", "DATASUM")
+                r
+                for r in hdu.read_header().records()
+                if r["name"] not in ("CHECKSUM", "DATASUM", "DATACRC")
             ]
             data = hdu.read()
             if edit is not None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,15 +21,17 @@ import galsim
 import h5py
 import numpy as np
 import pytest
-from coadd_factory import SMALL, make_patch
+from coadd_factory import MEDIUM, SMALL, make_patch
 from exposure_factory import make_wcs
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cellcoadd.geometry.box import Box
 from cellcoadd.io import api, hdf5_format
 from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.exposure_io import read_exposure, write_exposure
+from cellcoadd.io.fits_checksums import DATACRC
+from cellcoadd.io.fits_format import extname
 from cellcoadd.io.psf_codec import VaryingPsf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
@@ -158,14 +161,8 @@ def check_damaged(path: Path, kind: str, original: Any) -> str:
 # ------------------------------------------------------------------------- random damage
 
 
-def damage(
-    data: bytes, draw: Callable[[st.SearchStrategy], Any], data_units: list[tuple[int, int]]
-) -> bytes:
-    """One random kind of damage to ``data`` (hypothesis ``draw`` picks the details).
-
-    Blocks are not swapped inside one FITS data unit: its checksum is a sum of 32-bit
-    words, blind to their order (see ``test_block_swap_inside_a_fits_data_unit``).
-    """
+def damage(data: bytes, draw: Callable[[st.SearchStrategy], Any]) -> bytes:
+    """One random kind of damage to ``data`` (hypothesis ``draw`` picks the details)."""
     size = len(data)
     kind = draw(st.sampled_from(["truncate", "flip", "overwrite", "zero", "drop", "dup", "swap"]))
     offset = draw(st.integers(0, size - 1))
@@ -190,7 +187,6 @@ def damage(
     if kind == "dup":
         return data[: first + BLOCK] + data[first : first + BLOCK] + data[first + BLOCK :]
     low, high = sorted((first, second))
-    assume(not any(start <= low and high + BLOCK <= stop for start, stop in data_units))
     if low == high:
         return data[:low] + data[low + BLOCK :]
     return (
@@ -202,19 +198,9 @@ def damage(
     )
 
 
-def data_units(raw: bytes, path: Path) -> list[tuple[int, int]]:
-    """Byte ranges of the data units of a FITS file (none for other files)."""
-    if not raw.startswith(b"SIMPLE"):
-        return []
-    path.write_bytes(raw)
-    with fitsio.FITS(str(path)) as fits:
-        return [(h.get_offsets()["data_start"], h.get_offsets()["data_end"]) for h in fits]
-
-
 def fuzz_once(tmp_path_factory, originals, kind: str, draw) -> str:
     raw, original = originals[kind]
-    units = data_units(raw, tmp_path_factory.getbasetemp() / f"units-{kind}")
-    damaged = damage(raw, draw, units)
+    damaged = damage(raw, draw)
     path = tmp_path_factory.getbasetemp() / f"fuzz-{kind}"
     path.write_bytes(damaged)
     return check_damaged(path, kind, original)
@@ -241,21 +227,99 @@ def test_random_damage_long_run(tmp_path_factory, originals, kind, data):
     fuzz_once(tmp_path_factory, originals, kind, data.draw)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="FITS CHECKSUM/DATASUM are sums of 32-bit words, blind to reordering; a per-HDU "
-    "CRC-32 or SHA-256 keyword would catch it (see docs/reliability.md)",
-)
-def test_block_swap_inside_a_fits_data_unit(tmp_path, originals):
-    raw, original = originals["exposure.fits"]
-    hdus = fits_hdus(raw, tmp_path / "probe.fits")
-    start = raw.index(hdus[2])  # VARIANCE: 40 x 50 float64, about six blocks of data
-    first, second = start + 2 * BLOCK, start + 4 * BLOCK
-    swapped = bytearray(raw)
-    swapped[first : first + BLOCK] = raw[second : second + BLOCK]
-    swapped[second : second + BLOCK] = raw[first : first + BLOCK]
-    (tmp_path / "swapped.fits").write_bytes(bytes(swapped))
-    assert check_damaged(tmp_path / "swapped.fits", "exposure.fits", original) == "refused"
+def data_units(raw: bytes, path: Path) -> list[tuple[int, int]]:
+    """Byte ranges of the data units of a FITS file."""
+    path.write_bytes(raw)
+    with fitsio.FITS(str(path)) as fits:
+        return [(h.get_offsets()["data_start"], h.get_offsets()["data_end"]) for h in fits]
+
+
+def swap_blocks(raw: bytes, first: int, second: int) -> bytes:
+    """``raw`` with the 2880-byte blocks at offsets ``first < second`` swapped."""
+    assert raw[first : first + BLOCK] != raw[second : second + BLOCK], "identical blocks"
+    return (
+        raw[:first]
+        + raw[second : second + BLOCK]
+        + raw[first + BLOCK : second]
+        + raw[first : first + BLOCK]
+        + raw[second + BLOCK :]
+    )
+
+
+@pytest.mark.parametrize("kind", ["coadd.fits", "coadd.fits.fz", "exposure.fits"])
+def test_block_swap_inside_a_fits_data_unit(tmp_path, originals, kind):
+    """CHECKSUM/DATASUM are sums of 32-bit words, blind to their order; DATACRC is not."""
+    raw, original = originals[kind]
+    start, stop = max(data_units(raw, tmp_path / "probe.fits"), key=lambda u: u[1] - u[0])
+    assert stop - start >= 2 * BLOCK
+    (tmp_path / kind).write_bytes(swap_blocks(raw, start, stop - BLOCK))
+    assert check_damaged(tmp_path / kind, kind, original) == "refused"
+
+
+@pytest.mark.parametrize("name", ["patch.fits", "patch.fits.fz"])
+def test_read_cell_catches_a_block_swap_in_its_own_planes_only(tmp_path, name):
+    patch = make_patch(MEDIUM, seed=5, n_noise=1)
+    path = tmp_path / name
+    api.write(patch, path)
+    raw = path.read_bytes()
+    damaged, intact = list(patch)[:2]
+    with fitsio.FITS(str(path)) as fits:
+        hdu = fits[extname(damaged, "noise")]
+        start, stop = hdu.get_offsets()["data_start"], hdu.get_offsets()["data_end"]
+    assert stop - start >= 2 * BLOCK
+    path.write_bytes(swap_blocks(raw, start, stop - BLOCK))
+    with pytest.raises(CellCoaddFormatError, match="DATACRC"):
+        api.read_cell(path, damaged)
+    assert api.read_cell(path, intact).equals(patch[intact])
+    with fitsio.FITS(str(path)) as fits:  # the FITS checksums cannot see a reordering
+        fits[extname(damaged, "noise")].verify_checksum()
+
+
+def strip_datacrc(raw: bytes, path: Path) -> bytes:
+    """``raw`` as written before DATACRC existed: no DATACRC card, valid checksums."""
+    path.write_bytes(raw)
+    with fitsio.FITS(str(path), "rw") as fits:
+        for hdu in fits:
+            hdu.delete_key(DATACRC)
+            hdu.write_checksum()
+    stripped = path.read_bytes()
+    assert len(stripped) == len(raw) and b"DATACRC" not in stripped
+    return stripped
+
+
+@pytest.mark.parametrize("kind", ["coadd.fits", "coadd.fits.fz", "exposure.fits"])
+def test_every_hdu_carries_the_crc_of_its_data_unit(tmp_path, originals, kind):
+    raw, _ = originals[kind]
+    path = tmp_path / kind
+    path.write_bytes(raw)
+    with fitsio.FITS(str(path)) as fits:
+        for hdu in fits:
+            offsets = hdu.get_offsets()
+            data = raw[offsets["data_start"] : offsets["data_end"]]
+            assert hdu.read_header()[DATACRC] == zlib.crc32(data), hdu.get_extname()
+
+
+@pytest.mark.parametrize("kind", ["coadd.fits", "coadd.fits.fz", "exposure.fits"])
+def test_files_without_datacrc_still_read(tmp_path, originals, kind):
+    raw, original = originals[kind]
+    old = strip_datacrc(raw, tmp_path / "probe.fits")
+    (tmp_path / kind).write_bytes(old)
+    assert check_damaged(tmp_path / kind, kind, original) == "intact"
+    if kind.startswith("coadd"):
+        first = next(iter(original))
+        assert api.read_cell(tmp_path / kind, first).equals(original[first])
+
+
+@pytest.mark.parametrize("kind", ["coadd.fits", "coadd.fits.fz", "exposure.fits"])
+def test_a_wrong_datacrc_under_valid_checksums_is_refused(tmp_path, originals, kind):
+    raw, original = originals[kind]
+    path = tmp_path / kind
+    path.write_bytes(raw)
+    with fitsio.FITS(str(path), "rw") as fits:
+        hdu = fits[-1]
+        hdu.write_key(DATACRC, (hdu.read_header()[DATACRC] + 1) % 2**32)
+        hdu.write_checksum()
+    assert check_damaged(path, kind, original) == "refused"
 
 
 # ---------------------------------------------------------------------- structured damage

@@ -9,7 +9,11 @@ from pydantic import ValidationError
 from cellcoadd.geometry import Box, SkyMap, SkyMapConfig
 
 SMALL = SkyMapConfig(
-    pixel_scale=0.2, cell_inner=150, cell_border=50, cells_per_patch=4, patches_per_tract=3,
+    pixel_scale=0.2,
+    cell_inner=150,
+    cell_border=50,
+    cells_per_patch=4,
+    patches_per_tract=3,
     n_rings=200,  # tracts of 0.1 deg need narrow rings
 )
 

@@ -89,9 +89,10 @@ def test_weight_is_inverse_variance_of_the_noise_realizations(coadd):
     expected = np.mean([np.var(plane) for plane in inner])
     assert weight[0, 0] == pytest.approx(1.0 / expected, rel=1e-12)
     assert obs["meta"]["noise_variance"] == pytest.approx(expected, rel=1e-12)
-    # each realization agrees (sampling error of correlated noise over 40 x 40 pixels)
+    # each realization agrees: the variance of correlated noise over 40 x 40 pixels scatters
+    # by ~3.5% (160 seeds) with a long upper tail; a wrong scaling would be off by far more
     for plane in inner:
-        assert np.var(plane) * weight[0, 0] == pytest.approx(1.0, abs=0.15)
+        assert np.var(plane) * weight[0, 0] == pytest.approx(1.0, abs=0.2)
     # the stored variance plane ignores the smoothing by the resampling: it is higher
     assert np.median(coadd.inner.variance) * weight[0, 0] > 1.1
 

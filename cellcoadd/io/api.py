@@ -32,8 +32,8 @@ from cellcoadd.io.common import (
     clear_cfitsio_messages,
     disk_full_error,
     reading_errors,
-    stabilise_fits_checksums,
 )
+from cellcoadd.io.fits_checksums import stabilise_fits_checksums
 from cellcoadd.io.fits_format import FitsCoaddFile, check_fits_path, write_fits
 from cellcoadd.io.hdf5_format import Hdf5CoaddFile, write_hdf5
 from cellcoadd.model.cell_coadd import CellCoadd

@@ -7,7 +7,6 @@ import abc
 import errno
 import hashlib
 import json
-import mmap
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -32,12 +31,6 @@ MAX_METADATA_BYTES = 64 * 1024 * 1024
 
 #: Free space (bytes) below which a failed write is blamed on a full disk.
 DISK_FULL_MARGIN = 1 << 20
-
-#: Fixed comments of the FITS checksum cards (CFITSIO writes the current time there).
-_CHECKSUM_COMMENTS = {b"CHECKSUM=": b"HDU checksum", b"DATASUM =": b"data unit checksum"}
-_CARD = 80
-#: Characters the FITS checksum encoding avoids (ASCII punctuation between digits/letters).
-_CHECKSUM_EXCLUDED = frozenset(b":;<=>?@[\\]^_`")
 
 #: Pixel planes of a cell (besides the inputs table).
 PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
@@ -394,78 +387,3 @@ def disk_full_error(target: str | os.PathLike[str], error: BaseException) -> OSE
 
 def _first_line(text: str) -> str:
     return text.strip().splitlines()[0] if text.strip() else ""
-
-
-def stabilise_fits_checksums(path: str | os.PathLike[str]) -> None:
-    """Give the CHECKSUM/DATASUM cards of every HDU of ``path`` fixed comments.
-
-    CFITSIO stamps the current time into the comments of these cards, so the same data
-    written twice would differ byte-wise. This rewrites each comment (in place, headers
-    only) and recomputes CHECKSUM for the new header with the standard FITS algorithm
-    (32-bit ones' complement sum, ASCII encoding), keeping DATASUM, which covers the
-    unchanged data. Readers verify the result like any FITS checksum.
-    """
-    with fitsio.FITS(os.fspath(path)) as fits:
-        offsets = [hdu.get_offsets() for hdu in fits]
-    with open(path, "r+b") as stream, mmap.mmap(stream.fileno(), 0) as mapped:
-        for extent in offsets:
-            start, stop = extent["header_start"], extent["data_start"]
-            header = bytearray(mapped[start:stop])
-            if _stable_checksum_header(header):
-                mapped[start:stop] = header
-        mapped.flush()
-
-
-def _find_card(header: bytearray, key: bytes) -> int:
-    """Offset of the card starting with ``key`` (name and ``=``), or -1."""
-    offset = header.find(key)
-    while offset >= 0 and offset % _CARD:
-        offset = header.find(key, offset + 1)
-    return offset
-
-
-def _stable_checksum_header(header: bytearray) -> bool:
-    """Rewrite the checksum cards of one header in place; False if it has none."""
-    cards = {key: _find_card(header, key) for key in _CHECKSUM_COMMENTS}
-    if min(cards.values()) < 0:
-        return False
-    for key, offset in cards.items():
-        card = bytes(header[offset : offset + _CARD])
-        closing = card.index(b"'", 11)  # string values start at column 11
-        slash = card.find(b"/", closing)
-        value = card[: slash if slash > 0 else closing + 1]
-        header[offset : offset + _CARD] = (value + b"/ " + _CHECKSUM_COMMENTS[key]).ljust(_CARD)
-    datasum_card = bytes(header[cards[b"DATASUM ="] : cards[b"DATASUM ="] + _CARD])
-    datasum = int(datasum_card[11 : datasum_card.index(b"'", 11)].strip() or b"0")
-    checksum_value = slice(cards[b"CHECKSUM="] + 11, cards[b"CHECKSUM="] + 27)
-    header[checksum_value] = b"0" * 16
-    header[checksum_value] = _encode_checksum(_ones_complement_sum(bytes(header), datasum))
-    return True
-
-
-def _ones_complement_sum(data: bytes, initial: int = 0) -> int:
-    """32-bit ones' complement sum of big-endian words (FITS checksum convention)."""
-    total = int(np.frombuffer(data, dtype=">u4").sum(dtype=np.uint64)) + initial
-    while total >> 32:
-        total = (total & 0xFFFFFFFF) + (total >> 32)
-    return total
-
-
-def _encode_checksum(total: int) -> bytes:
-    """16-character ASCII encoding of the complement of ``total`` (FITS checksum standard)."""
-    value = 0xFFFFFFFF - total
-    encoded = [0] * 16
-    for byte_index in range(4):
-        byte = (value >> (24 - 8 * byte_index)) & 0xFF
-        quotient, remainder = byte // 4 + 0x30, byte % 4
-        chars = [quotient + remainder, quotient, quotient, quotient]
-        # Shift pairs off punctuation; each pair keeps its sum, so the checksum holds.
-        while any(c in _CHECKSUM_EXCLUDED for c in chars):
-            for first in (0, 2):
-                if chars[first] in _CHECKSUM_EXCLUDED or chars[first + 1] in _CHECKSUM_EXCLUDED:
-                    chars[first] += 1
-                    chars[first + 1] -= 1
-        for position in range(4):
-            encoded[4 * position + byte_index] = chars[position]
-    # The standard rotates the string one character to the right.
-    return bytes(encoded[15:] + encoded[:15])

@@ -19,19 +19,18 @@ META      uint8 bytes of a UTF-8 JSON document with the exact values (see below)
 Pixel arrays round-trip bit for bit (``-0.0`` included), except that cfitsio writes every
 NaN with one canonical bit pattern (the NaN positions are kept).
 
-PSF kinds: ``PROFILE`` (a GSObject with an exact JSON description, see
-:mod:`cellcoadd.io.psf_codec`), ``VARYING`` (a :class:`~cellcoadd.io.psf_codec.VaryingPsf`,
-exact), ``GRID`` (any other callable, sampled on a 5 x 5 grid of oversampled pre-pixel
-stamps and read back as a :class:`~cellcoadd.io.psf_codec.GridPsf`), ``SAMPLED`` (a
-GSObject outside the whitelist, sampled once and read back as an InterpolatedImage) and
-``IMAGE`` (a ``galsim.Image`` PSF, bit-identical).
+PSF kinds (``PROFILE``, ``VARYING``, ``SAMPLED``, ``GRID``, ``IMAGE``): see
+:mod:`cellcoadd.io.exposure_psf`.
 
 cfitsio writes floating-point header values with 15 significant digits, which is not
 enough to round-trip float64 (nor a WCS to 1e-9 pixel). The META document therefore holds
-the exact values of the floating-point keywords (WCS parameters, zero point, scalar
-variance) together with the identity, band (any Unicode), mask-bit names (case kept) and
-PSF description; the header keywords are for people and other tools, and the reader
-checks they agree with META. Every HDU carries CHECKSUM/DATASUM, verified on read.
+the exact values of the floating-point keywords (WCS parameters, see
+:mod:`cellcoadd.io.wcs_header`, zero point, scalar variance) together with the identity,
+band (any Unicode), mask-bit names (case kept) and PSF description; the header keywords
+are for people and other tools, and the reader checks they agree with META. Every HDU
+carries CHECKSUM/DATASUM and ``DATACRC`` (CRC-32 of its data unit as stored, see
+:mod:`cellcoadd.io.fits_checksums`), verified on read; files without ``DATACRC`` (written
+before it existed) are read without that check.
 """
 
 from __future__ import annotations
@@ -39,34 +38,27 @@ from __future__ import annotations
 import json
 import os
 import secrets
-import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import fitsio
-import galsim
 import numpy as np
-from astropy.io import fits
-from astropy.wcs import WCS, Sip
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.common import (
-    check_free_space,
-    clear_cfitsio_messages,
-    disk_full_error,
-    stabilise_fits_checksums,
-)
+from cellcoadd.io.common import check_free_space, clear_cfitsio_messages, disk_full_error
 from cellcoadd.io.errors import CellCoaddFormatError
-from cellcoadd.io.psf_codec import GridPsf, VaryingPsf, can_encode, decode_psf, encode_psf
+from cellcoadd.io.exposure_psf import psf_payload, read_psf
+from cellcoadd.io.fits_checksums import (
+    DATACRC_PLACEHOLDER,
+    stabilise_fits_checksums,
+    verify_hdu,
+)
+from cellcoadd.io.wcs_header import as_float, read_wcs, same_float, wcs_cards
 from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
 
 EXPOSURE_FORMAT = "cellcoadd-exposure"
 EXPOSURE_FORMAT_VERSION = "1.0"
-PSF_GRID_NODES = 5
-PSF_GRID_OVERSAMPLE = 4
-# relative agreement required between a header float (15 digits) and its exact value
-_HEADER_RTOL = 1e-13
 
 
 def write_exposure(
@@ -91,9 +83,9 @@ def write_exposure(
     target = Path(path)
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
-    header_wcs, wcs_exact = _wcs_cards(exposure.wcs)
+    header_wcs, wcs_exact = wcs_cards(exposure.wcs)
     try:
-        psf_kind, psf_meta, psf_array = _psf_payload(exposure)
+        psf_kind, psf_meta, psf_array = psf_payload(exposure)
     except Exception as err:  # a user PSF model can fail in any way
         raise ExposureError(
             f"exposure (visit={exposure.visit}, detector={exposure.detector}): its PSF cannot "
@@ -127,6 +119,7 @@ def write_exposure(
         {"name": "VALIDY1", "value": box.y_stop, "comment": "valid box, last row + 1"},
         {"name": "VARKIND", "value": "SCALAR" if scalar_variance else "ARRAY"},
         {"name": "PSFKIND", "value": psf_kind},
+        DATACRC_PLACEHOLDER,
     ]
     if scalar_variance:
         keys.append({"name": "VARIANCE", "value": float(exposure.variance)})
@@ -134,16 +127,17 @@ def write_exposure(
         {"name": f"MP_{name.upper()}", "value": int(bit), "comment": "mask plane bit"}
         for name, bit in exposure.mask_bits.bits.items()
     ]
+    mask_keys.append(DATACRC_PLACEHOLDER)
     meta_bytes = np.frombuffer(json.dumps(meta, allow_nan=False).encode("utf-8"), np.uint8)
 
     def write(fits_file: fitsio.FITS) -> None:
         fits_file.write(exposure.image, header=header_wcs + keys, extname="IMAGE")
         fits_file.write(exposure.mask, header=mask_keys, extname="MASK")
         if not scalar_variance:
-            fits_file.write(exposure.variance, extname="VARIANCE")
+            fits_file.write(exposure.variance, header=[DATACRC_PLACEHOLDER], extname="VARIANCE")
         if psf_array is not None:
-            fits_file.write(psf_array, extname="PSF")
-        fits_file.write(meta_bytes, extname="META")
+            fits_file.write(psf_array, header=[DATACRC_PLACEHOLDER], extname="PSF")
+        fits_file.write(meta_bytes, header=[DATACRC_PLACEHOLDER], extname="META")
         for hdu in fits_file:
             hdu.write_checksum()
 
@@ -160,8 +154,8 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
     Raises
     ------
     CellCoaddFormatError
-        For a missing, unreadable, truncated, corrupted (checksum) or inconsistent file,
-        or one of another kind; never another exception type.
+        For a missing, unreadable, truncated, corrupted (CHECKSUM/DATASUM or DATACRC) or
+        inconsistent file, or one of another kind; never another exception type.
     """
     if os.path.exists(path) and not os.path.isfile(path):
         # a directory, pipe or device: CFITSIO could block on it
@@ -169,8 +163,8 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
     # start and leave with an empty CFITSIO message stack (see cellcoadd.io.api.open)
     clear_cfitsio_messages()
     try:
-        with fitsio.FITS(os.fspath(path)) as fits_file:
-            return _read(fits_file)
+        with fitsio.FITS(os.fspath(path)) as fits_file, open(path, "rb") as raw:
+            return _read(fits_file, raw)
     except CellCoaddFormatError as err:
         raise CellCoaddFormatError(path, err.problem) from None
     except Exception as err:  # any library error on a malformed file becomes a format error
@@ -183,89 +177,6 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
 def _ascii(text: str) -> str:
     """A header-safe rendering of ``text`` (the exact value is kept in META)."""
     return text.encode("ascii", "backslashreplace").decode("ascii")
-
-
-def _wcs_cards(wcs: WCS) -> tuple[list[dict[str, Any]], dict[str, float]]:
-    """Header cards of ``wcs`` and the exact values of its floating-point keywords."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        header = wcs.to_header(relax=True)
-    exact = _exact_wcs_values(wcs)
-    cards = []
-    for card in header.cards:
-        value = card.value
-        if card.keyword in exact:
-            value = exact[card.keyword]
-        cards.append({"name": card.keyword, "value": value, "comment": card.comment})
-    exact = {k: v for k, v in exact.items() if k in header}
-    return cards, exact
-
-
-def _exact_wcs_values(wcs: WCS) -> dict[str, float]:
-    """Exact float64 values of the WCS keywords ``to_header`` writes (rounded there)."""
-    core = wcs.wcs
-    pc = core.get_pc()
-    cdelt = core.get_cdelt()
-    values: dict[str, float] = {"LONPOLE": float(core.lonpole), "LATPOLE": float(core.latpole)}
-    for i in range(2):
-        values[f"CRPIX{i + 1}"] = float(core.crpix[i])
-        values[f"CRVAL{i + 1}"] = float(core.crval[i])
-        values[f"CDELT{i + 1}"] = float(cdelt[i])
-        for j in range(2):
-            values[f"PC{i + 1}_{j + 1}"] = float(pc[i, j])
-    sip = wcs.sip
-    if sip is not None:
-        for prefix, coeffs in (("A", sip.a), ("B", sip.b), ("AP", sip.ap), ("BP", sip.bp)):
-            if coeffs is None:
-                continue
-            for p, q in zip(*np.nonzero(coeffs), strict=True):
-                values[f"{prefix}_{p}_{q}"] = float(coeffs[p, q])
-    return values
-
-
-def _psf_payload(exposure: Exposure) -> tuple[str, dict[str, Any], np.ndarray | None]:
-    """``(PSFKIND, META description, PSF HDU array or None)`` of the exposure's PSF."""
-    psf = exposure.psf
-    if isinstance(psf, galsim.Image):
-        scale = psf.scale if psf.wcs is not None and psf.wcs.isPixelScale() else None
-        return "IMAGE", {"kind": "image", "scale": scale}, np.ascontiguousarray(psf.array)
-    if isinstance(psf, galsim.GSObject):
-        if can_encode(psf):
-            return "PROFILE", {"kind": "profile", "profile": encode_psf(psf)}, None
-        grid = GridPsf.sample(
-            lambda x, y: psf,
-            (1, 1),
-            _typical_scale(exposure),
-            n_nodes=1,
-            oversample=PSF_GRID_OVERSAMPLE,
-        )
-        return "SAMPLED", {"kind": "sampled", "scale": grid.scale}, grid.stamps
-    if isinstance(psf, VaryingPsf) and can_encode(psf):
-        return "VARYING", {"kind": "varying", "profile": encode_psf(psf)}, None
-    if isinstance(psf, GridPsf):
-        grid = psf
-    else:
-        grid = GridPsf.sample(
-            psf,
-            exposure.shape,
-            _typical_scale(exposure),
-            n_nodes=PSF_GRID_NODES,
-            oversample=PSF_GRID_OVERSAMPLE,
-        )
-    meta = {
-        "kind": "grid",
-        "scale": grid.scale,
-        "x_nodes": [float(v) for v in grid.x_nodes],
-        "y_nodes": [float(v) for v in grid.y_nodes],
-    }
-    return "GRID", meta, np.ascontiguousarray(grid.stamps, dtype=np.float64)
-
-
-def _typical_scale(exposure: Exposure) -> float:
-    """Pixel scale (arcsec) at the detector centre: sqrt of the pixel area."""
-    ny, nx = exposure.shape
-    jac = exposure.local_jacobian((nx - 1) / 2.0, (ny - 1) / 2.0)
-    return float(np.sqrt(abs(np.linalg.det(jac))))
 
 
 def _atomic_fits_write(target: Path, write: Any, needed: int) -> None:
@@ -314,14 +225,15 @@ def _fail(problem: str) -> CellCoaddFormatError:
     return CellCoaddFormatError("", problem)
 
 
-def _read(fits_file: fitsio.FITS) -> Exposure:
+def _read(fits_file: fitsio.FITS, raw: BinaryIO) -> Exposure:
+    """The exposure in ``fits_file``; ``raw`` is the same file, for the checksums."""
     names = [hdu.get_extname() for hdu in fits_file]
     for required in ("IMAGE", "MASK", "META"):
         if required not in names:
             raise _fail(f"missing HDU {required} (HDUs: {names})")
     for hdu in fits_file:
         try:
-            hdu.verify_checksum()
+            verify_hdu(raw, hdu.get_offsets())
         except ValueError as err:
             raise _fail(f"HDU {hdu.get_extname() or hdu.get_extnum()}: {err}") from None
     meta = _read_meta(fits_file["META"].read())
@@ -340,18 +252,18 @@ def _read(fits_file: fitsio.FITS) -> Exposure:
             raise _fail("missing HDU VARIANCE for an array variance")
         variance: float | np.ndarray = _native(fits_file["VARIANCE"].read())
     else:
-        variance = _as_float(meta["variance"], "variance")
+        variance = as_float(meta["variance"], "variance")
     psf_array = _native(fits_file["PSF"].read()) if "PSF" in names else None
     x0, x1, y0, y1 = (int(v) for v in meta["valid_box"])
     return Exposure(
         image=image,
-        wcs=_read_wcs(image_header, meta["wcs_exact"]),
+        wcs=read_wcs(image_header, meta["wcs_exact"]),
         variance=variance,
-        psf=_read_psf(meta["psf"], psf_array),
+        psf=read_psf(meta["psf"], psf_array),
         visit=int(meta["visit"]),
         detector=int(meta["detector"]),
         band=meta["band"],
-        zero_point=_as_float(meta["zero_point"], "zero_point"),
+        zero_point=as_float(meta["zero_point"], "zero_point"),
         mask=mask,
         mask_bits=mask_bits,
         valid_box=Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1),
@@ -390,18 +302,6 @@ def _read_meta(data: np.ndarray) -> dict[str, Any]:
     return meta
 
 
-def _as_float(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _fail(f"{what} must be a number")
-    return float(value)
-
-
-def _same_float(header_value: Any, exact: float) -> bool:
-    if isinstance(header_value, bool) or not isinstance(header_value, (int, float)):
-        return False
-    return abs(float(header_value) - exact) <= _HEADER_RTOL * max(1.0, abs(exact))
-
-
 def _check_keywords(header: fitsio.FITSHDR, meta: dict[str, Any]) -> None:
     """The human-readable IMAGE keywords must agree with META."""
     expected_ints = {
@@ -417,9 +317,9 @@ def _check_keywords(header: fitsio.FITSHDR, meta: dict[str, Any]) -> None:
             raise _fail(f"IMAGE keyword {key} disagrees with META ({value})")
     if header.get("CCFORMAT") != EXPOSURE_FORMAT:
         raise _fail("IMAGE keyword CCFORMAT is missing or wrong")
-    if not _same_float(header.get("ZEROPT"), float(meta["zero_point"])):
+    if not same_float(header.get("ZEROPT"), float(meta["zero_point"])):
         raise _fail("IMAGE keyword ZEROPT disagrees with META")
-    if meta["variance"] is not None and not _same_float(
+    if meta["variance"] is not None and not same_float(
         header.get("VARIANCE"), float(meta["variance"])
     ):
         raise _fail("IMAGE keyword VARIANCE disagrees with META")
@@ -430,87 +330,6 @@ def _check_mask_keywords(header: fitsio.FITSHDR, mask_bits: MaskBits) -> None:
     expected = {f"MP_{name.upper()}": bit for name, bit in mask_bits.bits.items()}
     if planes != expected:
         raise _fail(f"MASK keywords {planes} disagree with META mask bits {expected}")
-
-
-def _read_wcs(header: fitsio.FITSHDR, exact: dict[str, Any]) -> WCS:
-    text = "\n".join(record["card_string"] for record in header.records())
-    values = {key: _as_float(value, f"WCS value {key}") for key, value in exact.items()}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        astropy_header = fits.Header.fromstring(text, sep="\n")
-        for key, value in values.items():
-            if key not in astropy_header or not _same_float(astropy_header[key], value):
-                raise _fail(f"WCS keyword {key} disagrees with its exact value in META")
-        wcs = WCS(astropy_header, naxis=2)
-    if not wcs.has_celestial:
-        raise _fail("the IMAGE header holds no celestial WCS")
-    # astropy re-renders header floats with at most 20 characters when it builds the WCS,
-    # so the exact values are set on the parsed WCS itself
-    _apply_exact_wcs_values(wcs, values)
-    return wcs
-
-
-def _apply_exact_wcs_values(wcs: WCS, values: dict[str, float]) -> None:
-    """Inverse of :func:`_exact_wcs_values` on a WCS parsed from the rounded header."""
-    core = wcs.wcs
-    crpix, crval = core.crpix.copy(), core.crval.copy()
-    cdelt, pc = core.get_cdelt().copy(), core.get_pc().copy()
-    for i in range(2):
-        crpix[i] = values.get(f"CRPIX{i + 1}", crpix[i])
-        crval[i] = values.get(f"CRVAL{i + 1}", crval[i])
-        cdelt[i] = values.get(f"CDELT{i + 1}", cdelt[i])
-        for j in range(2):
-            pc[i, j] = values.get(f"PC{i + 1}_{j + 1}", pc[i, j])
-    core.crpix, core.crval, core.cdelt, core.pc = crpix, crval, cdelt, pc
-    core.lonpole = values.get("LONPOLE", core.lonpole)
-    core.latpole = values.get("LATPOLE", core.latpole)
-    sip = wcs.sip
-    if sip is not None:
-        coeffs = {}
-        for prefix, array in (("A", sip.a), ("B", sip.b), ("AP", sip.ap), ("BP", sip.bp)):
-            if array is None:
-                coeffs[prefix] = None
-                continue
-            array = array.copy()
-            for p, q in zip(*np.nonzero(array), strict=True):
-                array[p, q] = values.get(f"{prefix}_{p}_{q}", array[p, q])
-            coeffs[prefix] = array
-        wcs.sip = Sip(coeffs["A"], coeffs["B"], coeffs["AP"], coeffs["BP"], crpix)
-    core.set()
-
-
-def _read_psf(desc: Any, array: np.ndarray | None) -> Any:
-    if not isinstance(desc, dict):
-        raise _fail("META psf must be an object")
-    kind = desc.get("kind")
-    if kind in ("profile", "varying"):
-        psf = decode_psf(desc.get("profile"))
-        expected = VaryingPsf if kind == "varying" else galsim.GSObject
-        if not isinstance(psf, expected):
-            raise _fail(f"PSF description does not match its kind {kind!r}")
-        return psf
-    if array is None:
-        raise _fail(f"missing HDU PSF for a PSF of kind {kind!r}")
-    if kind == "image":
-        scale = desc.get("scale")
-        if scale is None:
-            return galsim.Image(array)
-        return galsim.Image(array, scale=_as_float(scale, "PSF scale"))
-    if kind == "sampled":
-        grid = GridPsf(
-            x_nodes=np.zeros(1), y_nodes=np.zeros(1), stamps=array, scale=desc.get("scale")
-        )
-        return grid(0.0, 0.0)
-    if kind == "grid":
-        x_nodes = np.array([_as_float(v, "PSF node") for v in desc.get("x_nodes", [])])
-        y_nodes = np.array([_as_float(v, "PSF node") for v in desc.get("y_nodes", [])])
-        return GridPsf(
-            x_nodes=x_nodes,
-            y_nodes=y_nodes,
-            stamps=array,
-            scale=_as_float(desc.get("scale"), "PSF scale"),
-        )
-    raise _fail(f"unknown PSF kind {kind!r}")
 
 
 def _native(array: np.ndarray) -> np.ndarray:

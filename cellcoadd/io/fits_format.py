@@ -5,7 +5,9 @@ HDU 0 (primary, no data) carries the identification and version keywords and
 walking every header to the end of the file, and fall back to that walk without it), HDU 1
 ``METADATA`` the metadata JSON as a uint8 image, HDU 2 ``CELLINDEX`` one row per cell
 (index, HDU numbers of its planes, identity JSON), then one HDU per (cell, plane) named
-``CELL_<+cx>_<+cy>_<PLANE>``. Every HDU carries CHECKSUM/DATASUM.
+``CELL_<+cx>_<+cy>_<PLANE>``. Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
+of its data unit as stored (see :mod:`cellcoadd.io.fits_checksums`), all verified on read
+when ``verify`` is true.
 
 With lossless compression the float32 planes are tile-compressed (GZIP_2) as int32 images
 holding their IEEE-754 bit patterns (keyword ``CCBITS = 'FLOAT32'``): CFITSIO replaces every
@@ -25,6 +27,7 @@ from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
 from cellcoadd.io import common
 from cellcoadd.io.errors import CellCoaddFormatError
+from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER, verify_hdu
 from cellcoadd.model.cell_coadd import CellCoadd, wcs_to_record
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
@@ -62,7 +65,12 @@ def _cell_planes(n_noise: int) -> list[str]:
 
 
 def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
-    """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists)."""
+    """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists).
+
+    The ``DATACRC`` cards hold a placeholder until
+    :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums` fills them in (as
+    :func:`cellcoadd.io.api.write` does); readers refuse the file before that.
+    """
     check_fits_path(path)
     payload, version = common.metadata_payload(patch.metadata)
     indices = list(patch.cells)
@@ -83,6 +91,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
                 {"name": "SOFTVERS", "value": meta.software_version, "comment": "built by"},
                 # the real value is written last, in place (same card, no header growth)
                 {"name": "FILESIZE", "value": 0, "comment": "bytes in this file"},
+                DATACRC_PLACEHOLDER,
             ],
         )
         fits[-1].write_checksum()
@@ -92,7 +101,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
             "METADATA",
             [{"name": "METASHA", "value": common.sha256_hex(payload), "comment": "SHA-256"}],
         )
-        fits.write(_index_table(patch, planes), extname="CELLINDEX")
+        fits.write(_index_table(patch, planes), extname="CELLINDEX", header=[DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         for index in indices:
             _write_cell(fits, patch.cells[index], compress=compress)
@@ -128,7 +137,7 @@ def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
         plane_keys = [*keys, {"name": "PLANE", "value": plane}]
         if plane == "inputs":
             fits.write(common.inputs_to_array(cell.inputs, ascii_only=True), extname=name)
-            fits[-1].write_keys(plane_keys)
+            fits[-1].write_keys([*plane_keys, DATACRC_PLACEHOLDER])
             fits[-1].write_checksum()
             continue
         data = getattr(cell, plane)
@@ -166,7 +175,7 @@ def _write_image(
     fits.create_image_hdu(dims=data.shape, dtype=data.dtype, extname=name, **options)
     hdu = fits[-1]
     hdu.write(np.ascontiguousarray(data))
-    hdu.write_keys(keys)
+    hdu.write_keys([*keys, DATACRC_PLACEHOLDER])
     hdu.write_checksum()
 
 
@@ -178,19 +187,21 @@ class FitsCoaddFile(common.CoaddFile):
     def __init__(self, path: str, *, verify: bool = True) -> None:
         check_fits_path(path)
         size = common.check_path_readable(path)
-        with open(path, "rb") as stream:
-            if stream.read(len(_FITS_MAGIC)) != _FITS_MAGIC:
-                raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
-        self.path = path
-        self.verify = verify
-        self._opened: dict[int, Any] = {}  # fitsio HDU objects by number
-        self._n_hdu = 0
-        with common.reading_errors(path, "cannot open the FITS file"):
-            self._fits = fitsio.FITS(path)
+        # Kept open for the checksums: verify_hdu reads an HDU's bytes as stored.
+        self._raw: Any = open(path, "rb")  # closed by close()
+        self._fits: Any = None
         try:
+            if self._raw.read(len(_FITS_MAGIC)) != _FITS_MAGIC:
+                raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
+            self.path = path
+            self.verify = verify
+            self._opened: dict[int, Any] = {}  # fitsio HDU objects by number
+            self._n_hdu = 0
+            with common.reading_errors(path, "cannot open the FITS file"):
+                self._fits = fitsio.FITS(path)
             metadata, rows = self._read_header_part(path, size)
         except BaseException:
-            self._fits.close()
+            self.close()
             raise
         self._rows = rows
         super().__init__(path, metadata, list(rows))
@@ -295,7 +306,7 @@ class FitsCoaddFile(common.CoaddFile):
         if not self.verify:
             return
         with common.reading_errors(self.path, f"checksum of HDU {number} {name}".rstrip()):
-            self._hdu_at(number).verify_checksum()
+            verify_hdu(self._raw, self._hdu_at(number).get_offsets())
 
     def _row(self, index: tuple[int, int]) -> tuple[tuple[int, int], np.void]:
         key = self._check_index(index)
@@ -358,6 +369,10 @@ class FitsCoaddFile(common.CoaddFile):
             self._opened = {}
             fits.close()
             self._fits = None
+        raw = getattr(self, "_raw", None)
+        if raw is not None:
+            raw.close()
+            self._raw = None
 
 
 def open_fits(path: str | os.PathLike[str], *, verify: bool = True) -> FitsCoaddFile:

@@ -10,9 +10,7 @@ from cellcoadd.shear.metacal import (
     INTERPOLANT,
     METACAL_TYPES,
     RECONVOLUTION_KINDS,
-    SHAPE_DTYPE,
     MetacalError,
-    MetacalFlags,
     MetacalImage,
     measure_metacal,
     measure_shapes,
@@ -35,6 +33,7 @@ from cellcoadd.shear.response import (
     shear_response,
     stack_results,
 )
+from cellcoadd.shear.shapes import SHAPE_DTYPE, MetacalFlags
 from cellcoadd.shear.stamp_pairs import (
     PairMeasurement,
     ValidationSettings,

@@ -32,17 +32,37 @@ additive shear. The price is twice the noise variance
 (:attr:`MetacalImage.variance_factor`). A 90-degree turn of the pixel grid is a 90-degree
 turn on the sky when the jacobian is a scaled rotation (or reflection), as for a cell of a
 tangent-plane tract.
+
+Shapes of the metacal images (:func:`measure_shapes`) are measured one image at a time by
+:mod:`cellcoadd.shear.shapes`, which also defines the record (:data:`SHAPE_DTYPE`) and its
+flags (:class:`MetacalFlags`).
 """
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import galsim
 import numpy as np
+
+from cellcoadd.shear.shapes import MetacalFlags, empty_record, measure_shape, psf_T
+
+__all__ = [
+    "INTERPOLANT",
+    "KSPACE_THRESHOLD",
+    "METACAL_TYPES",
+    "RECONVOLUTION_KINDS",
+    "MetacalError",
+    "MetacalImage",
+    "ReconvolutionKind",
+    "measure_metacal",
+    "measure_shapes",
+    "metacal_images",
+    "metacal_shears",
+    "reconvolution_psf",
+]
 
 ReconvolutionKind = Literal["gauss", "fitgauss", "dilate"]
 RECONVOLUTION_KINDS: tuple[str, ...] = ("gauss", "fitgauss", "dilate")
@@ -59,26 +79,9 @@ INTERPOLANT = "lanczos15"
 #: smallest wavenumber where the PSF (with pixel) does, before dilation.
 KSPACE_THRESHOLD = 1.0e-2
 
-#: One measured shape per row; ``T`` and ``T_psf`` in arcsec^2, ``flux`` in image units
-#: (sum of pixel values), ``x, y`` the 0-based pixel centroid.
-SHAPE_DTYPE = np.dtype(
-    [("flags", "i4")]
-    + [(name, "f8") for name in ("g1", "g2", "T", "T_psf", "flux", "s2n", "x", "y")]
-)
-
 
 class MetacalError(ValueError):
     """The arguments of a metacal call are malformed (wrong shapes, singular jacobian...)."""
-
-
-class MetacalFlags(enum.IntFlag):
-    """Bits of the ``flags`` field of :data:`SHAPE_DTYPE` (0 means a good measurement)."""
-
-    HSM_FAILED = 1  #: adaptive moments did not converge on the metacal image
-    NONPOSITIVE_FLUX = 2  #: weighted flux <= 0 or a non-finite S/N
-    PSF_FAILED = 4  #: the PSF is unusable or its moments failed
-    NONFINITE = 8  #: non-finite pixels in the image or the noise image
-    TRANSFORM_FAILED = 16  #: GalSim could not build or draw the metacal images
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,80 +318,6 @@ def metacal_images(
     return result
 
 
-def _empty_record(flags: int) -> np.ndarray:
-    record = np.zeros(1, dtype=SHAPE_DTYPE)
-    for name in SHAPE_DTYPE.names:
-        if name != "flags":
-            record[name] = np.nan
-    record["flags"] = flags
-    return record
-
-
-def _sky_T(sigma: float, shape: galsim.Shear) -> float:
-    # T = Ixx + Iyy for moments with det(M)^(1/4) = sigma and distortion |e|.
-    return 2.0 * sigma**2 / np.sqrt(1.0 - shape.e**2)
-
-
-def _measure_one(
-    array: np.ndarray,
-    wcs: galsim.BaseWCS,
-    noise_variance: float,
-    guess_centroid: tuple[float, float] | None,
-    guess_sigma: float,
-) -> np.ndarray:
-    if not np.all(np.isfinite(array)):
-        return _empty_record(MetacalFlags.NONFINITE)
-    gimage = galsim.Image(np.ascontiguousarray(array), xmin=0, ymin=0, wcs=wcs)
-    centroid = gimage.true_center if guess_centroid is None else galsim.PositionD(*guess_centroid)
-    moments = galsim.hsm.FindAdaptiveMom(
-        gimage, guess_sig=guess_sigma, guess_centroid=centroid, strict=False
-    )
-    if moments.moments_status != 0:
-        return _empty_record(MetacalFlags.HSM_FAILED)
-
-    # S/N of the flux in the matched (adaptive) Gaussian weight W, for white noise:
-    # sum(W I) / sqrt(var * sum(W^2)).
-    ny, nx = array.shape
-    moments_matrix = moments.moments_sigma**2 * _shape_matrix(moments.observed_shape)
-    dx = np.arange(nx)[np.newaxis, :] - moments.moments_centroid.x
-    dy = np.arange(ny)[:, np.newaxis] - moments.moments_centroid.y
-    inverse = np.linalg.inv(moments_matrix)
-    rho2 = inverse[0, 0] * dx**2 + 2.0 * inverse[0, 1] * dx * dy + inverse[1, 1] * dy**2
-    weight = np.exp(-0.5 * rho2)
-    weighted_flux = float(np.sum(weight * array))
-    if noise_variance > 0.0:
-        s2n = weighted_flux / np.sqrt(noise_variance * np.sum(weight**2))
-    else:
-        s2n = np.inf if weighted_flux > 0.0 else np.nan
-
-    sky = moments.applyWCS(wcs, image_pos=moments.moments_centroid)
-    record = np.zeros(1, dtype=SHAPE_DTYPE)
-    record["g1"] = sky.observed_shape.g1
-    record["g2"] = sky.observed_shape.g2
-    record["T"] = _sky_T(sky.moments_sigma, sky.observed_shape)
-    record["flux"] = moments.moments_amp
-    record["s2n"] = s2n
-    record["x"] = moments.moments_centroid.x
-    record["y"] = moments.moments_centroid.y
-    if not (weighted_flux > 0.0 and moments.moments_amp > 0.0 and s2n > 0.0):
-        record["flags"] = MetacalFlags.NONPOSITIVE_FLUX
-    return record
-
-
-def _shape_matrix(shape: galsim.Shear) -> np.ndarray:
-    # Unit-determinant matrix A with moments M = sigma^2 A for a shape g (pixel frame).
-    transform = shape.getMatrix()
-    return transform @ transform.T
-
-
-def _psf_T(psf_image: np.ndarray, wcs: galsim.BaseWCS) -> float:
-    gimage = galsim.Image(np.ascontiguousarray(psf_image), xmin=0, ymin=0, wcs=wcs)
-    moments = galsim.hsm.FindAdaptiveMom(gimage, strict=False, use_sky_coords=True)
-    if moments.moments_status != 0:
-        return np.nan
-    return _sky_T(moments.moments_sigma, moments.observed_shape)
-
-
 def measure_shapes(
     metacal: Mapping[str, MetacalImage],
     noise_sigma: float,
@@ -423,13 +352,13 @@ def measure_shapes(
     results: dict[str, np.ndarray] = {}
     for name, mc in metacal.items():
         wcs = _galsim_wcs(mc.jacobian)
-        T_psf = _psf_T(mc.psf_image, wcs)
+        T_psf = psf_T(mc.psf_image, wcs)
         pixel_area = abs(wcs.pixelArea())
         if guess_sigma is None:
             sigma = 1.5 * np.sqrt(T_psf / 2.0 / pixel_area) if np.isfinite(T_psf) else 5.0
         else:
             sigma = guess_sigma
-        record = _measure_one(
+        record = measure_shape(
             mc.image, wcs, mc.variance_factor * noise_sigma**2, guess_centroid, sigma
         )
         record["T_psf"] = T_psf
@@ -480,7 +409,7 @@ def measure_metacal(
         except galsim.GalSimError:
             flag = MetacalFlags.TRANSFORM_FAILED
     if flag:
-        return {name: _empty_record(flag) for name in METACAL_TYPES}
+        return {name: empty_record(flag) for name in METACAL_TYPES}
     return measure_shapes(images, noise_sigma, guess_centroid, guess_sigma)
 
 

@@ -43,8 +43,9 @@ from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
-from cellcoadd.shear.metacal import METACAL_TYPES, SHAPE_DTYPE, measure_metacal
+from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
+from cellcoadd.shear.shapes import SHAPE_DTYPE
 from cellcoadd.sim.config import SimConfig
 from cellcoadd.sim.stamps import StampObject, simulate_object
 

@@ -31,8 +31,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.build.executors import resolve_executor
-from cellcoadd.shear.metacal import METACAL_TYPES, SHAPE_DTYPE, ReconvolutionKind
+from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
+from cellcoadd.shear.shapes import SHAPE_DTYPE
 from cellcoadd.shear.stamp_pairs import (
     Mode,
     PairMeasurement,
