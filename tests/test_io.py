@@ -31,7 +31,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.io import api, common, fits_format, hdf5_format
 from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.cell_coadd import CellCoadd
-from cellcoadd.model.patch_coadd import PatchCoadd
+from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 
 NAMES = ["patch.fits", "patch.fits.fz", "patch.h5", "patch.hdf5"]
 LAYOUTS = [(name, comp) for name in NAMES for comp in (None, "lossless")]
@@ -374,7 +374,9 @@ def test_format_versions(tmp_path, monkeypatch, patch, name):
     api.write(patch, tmp_path / name)
     newer_minor = api.read(tmp_path / name)
     assert newer_minor.metadata.format_version == "1.7"
-    assert newer_minor.metadata.model_copy(update={"format_version": "1.0"}) == patch.metadata
+    assert (
+        newer_minor.metadata.model_copy(update={"format_version": FORMAT_VERSION}) == patch.metadata
+    )
     for version, extra, message in (("2.0", False, "major version 2"), ("1.0", True, "(?i)extra")):
         monkeypatch.setattr(common, "metadata_payload", payload_with(version, extra))
         api.write(patch, tmp_path / name, overwrite=True)

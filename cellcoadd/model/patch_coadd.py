@@ -24,7 +24,7 @@ from cellcoadd.model.maskbits import MaskBits
 #: Version ``"MAJOR.MINOR"`` of the stored data model and file layouts. A major bump means
 #: readers of older majors cannot read the files (they refuse them); a minor bump only adds
 #: (fields, datasets, keywords), so readers of the same major read newer minors.
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 
 _VERSION_PATTERN = re.compile(r"^(\d+)\.(\d+)$")
 
