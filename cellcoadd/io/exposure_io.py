@@ -58,7 +58,7 @@ from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
 
 EXPOSURE_FORMAT = "cellcoadd-exposure"
-EXPOSURE_FORMAT_VERSION = "1.0"
+EXPOSURE_FORMAT_VERSION = "1.1"  # 1.1: DATACRC keywords
 
 
 def write_exposure(
