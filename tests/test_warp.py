@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cellcoadd.build.accumulate import accumulate_warped
 from cellcoadd.build.mask_warp import warp_mask_or
 from cellcoadd.build.warp import KERNEL_HALF_WIDTH, warp_planes
 
@@ -132,6 +133,29 @@ def test_accumulation_with_weight_and_scale(rotated_job):
     np.testing.assert_array_equal(out2, 0.25 * warped)
 
 
+@pytest.mark.parametrize("n_planes", [1, 2, 3, 4, 5, 6, 7, 8, 9, 13])
+def test_interleaved_accumulation_is_bit_identical_to_warp_planes(n_planes):
+    # Every plane count takes its own path through the vector widths (and more than
+    # eight overlapping groups); each plane must still get exactly warp_planes' bits.
+    rng = np.random.default_rng(n_planes)
+    planes = rng.normal(size=(n_planes, 70, 80))
+    x_src, y_src = affine_positions((30, 33), (35.0, 6.0), 0.77, 30.0)
+    x_src[3] = np.round(x_src[3])  # integral along x only
+    x_src[5, :4], y_src[5, :4] = 20.0, 30.0  # integral along both: copied
+    weights = rng.uniform(0.5, 2.0, n_planes)
+    scales = rng.uniform(0.5, 1.5, (2, *x_src.shape))
+    which = rng.integers(-1, 2, n_planes)
+    start = rng.normal(size=(n_planes, *x_src.shape))
+    pixels = np.ascontiguousarray(planes.transpose(1, 2, 0))
+    out = accumulate_warped(pixels, x_src, y_src, start.copy(), weights, scales, which)
+    for p in range(n_planes):
+        scale = None if which[p] < 0 else scales[which[p]]
+        expected = warp_planes(
+            planes[p : p + 1], x_src, y_src, start[p : p + 1].copy(), weights[p], scale
+        )
+        assert np.array_equal(out[p], expected[0]), p
+
+
 def test_parallel_is_bit_identical(rotated_job):
     planes, x_src, y_src = rotated_job
     serial = warp_planes(planes, x_src, y_src)
@@ -190,6 +214,21 @@ def test_mask_or_reaches_exactly_the_footprint(rotated_job):
     )
     assert covers.sum() > 0
     assert np.array_equal(result, np.where(covers, 4, 0).astype(np.int32))
+
+
+def test_mask_or_matches_brute_force(rotated_job):
+    _, x_src, y_src = rotated_job
+    rng = np.random.default_rng(8)
+    mask = np.where(rng.random((80, 90)) < 0.01, 1 << rng.integers(0, 8, (80, 90)), 0)
+    mask = mask.astype(np.int32)
+    first_x = np.floor(x_src).astype(int) - (KERNEL_HALF_WIDTH - 1)
+    first_y = np.floor(y_src).astype(int) - (KERNEL_HALF_WIDTH - 1)
+    expected = np.zeros(x_src.shape, dtype=np.int32)
+    for index in np.ndindex(x_src.shape):
+        block = mask[first_y[index] : first_y[index] + 6, first_x[index] : first_x[index] + 6]
+        expected[index] = np.bitwise_or.reduce(block, axis=None)
+    assert expected.any() and not expected.all()
+    assert np.array_equal(warp_mask_or(mask, x_src, y_src), expected)
 
 
 def test_mask_or_combines_bits():

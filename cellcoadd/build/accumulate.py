@@ -1,22 +1,173 @@
 """Accumulating a warp straight into running sums, for inputs stored pixel by pixel.
 
 The builder keeps an exposure's planes interleaved (all planes of a pixel together), so
-each tap reads them in one go; the kernel weights are those of
-:mod:`cellcoadd.build.warp`, and the result equals ``warp_planes`` bit for bit.
+each tap reads them in one go and they fill the lanes of SIMD vectors (up to eight planes
+per pass over a 6x6 block: vectors of 4, 2 and 1 lanes); the kernel weights and the
+order of the sums are those of :mod:`cellcoadd.build.warp`, and the result equals
+``warp_planes`` bit for bit. The footprints of pixels a few steps ahead are prefetched,
+as a rotated footprint walks through memory in a pattern the hardware does not predict.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
-from cellcoadd.build.warp import (
-    _block_sum,
-    _block_sums2,
-    _block_sums4,
-    _check_positions,
-    _row_weights,
+from cellcoadd.build.lanczos import (
+    _N_TAPS,
+    _TABLE_ROWS,
+    _WEIGHT_Y,
+    _corner,
+    _exact_source,
+    _row_table,
 )
+from cellcoadd.build.warp import (
+    _I32,
+    _I64,
+    _block_sum_adjacent,
+    _check_positions,
+    _column_sums,
+    _is_flat,
+    _splat,
+    _table_weights,
+    _tree_sum,
+)
+
+
+def _make_block_sums(width: int) -> Callable:
+    """Intrinsic ``(flat, corner, row_stride, tap_stride, table, col)`` -> ``width`` sums.
+
+    The 6x6 weighted sums of ``width`` planes stored next to each other (interleaved
+    layout): tap ``(a, b)`` of plane ``p`` is ``flat[corner + a row_stride + b tap_stride
+    + p]``; weights as for :func:`_block_sum_adjacent`. The planes are split into vectors
+    of 4, 2 and 1 lanes that share one pass over the taps.
+    """
+    pieces = [4] * (width // 4) + [2] * (width % 4 // 2) + [1] * (width % 2)
+
+    def typer(typingctx, flat, corner, row_stride, tap_stride, table, col):
+        if not _is_flat(flat):
+            return None
+        result = types.UniTuple(types.float64, width)
+        signature = result(flat, corner, row_stride, tap_stride, table, col)
+
+        def codegen(context, builder, signature, args):
+            flat, corner, row_stride, tap_stride, table, col = args
+            flat_type, table_type = signature.args[0], signature.args[4]
+            weights_y = _table_weights(context, builder, table_type, table, col, _WEIGHT_Y)
+            weights_x = _table_weights(context, builder, table_type, table, col, 0)
+            lanes = []
+            first = 0
+            for piece in pieces:
+                splats = [_splat(builder, weight, piece) for weight in weights_y]
+                piece_corner = builder.add(corner, ir.Constant(_I64, first))
+                xterms = []
+                for b in range(_N_TAPS):
+                    offset = builder.mul(tap_stride, ir.Constant(_I64, b))
+                    sums = _column_sums(
+                        context,
+                        builder,
+                        flat_type,
+                        flat,
+                        builder.add(piece_corner, offset),
+                        row_stride,
+                        splats,
+                        piece,
+                    )
+                    xterms.append(builder.fmul(_splat(builder, weights_x[b], piece), sums))
+                total = _tree_sum(builder, xterms)
+                lanes += [
+                    builder.extract_element(total, ir.Constant(_I32, k)) for k in range(piece)
+                ]
+                first += piece
+            return context.make_tuple(builder, result, lanes)
+
+        return signature, codegen
+
+    return intrinsic(typer)
+
+
+@intrinsic
+def _prefetch(typingctx, flat, index):
+    """Ask the processor to bring the cache line holding ``flat[index]`` into its caches."""
+    signature = types.void(flat, index)
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        byte_pointer = ir.IntType(8).as_pointer()
+        prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch",
+            [byte_pointer],
+            fnty=ir.FunctionType(ir.VoidType(), [byte_pointer, _I32, _I32, _I32]),
+        )
+        pointer = builder.bitcast(builder.gep(data, [args[1]], inbounds=True), byte_pointer)
+        # read, keep in all cache levels, data cache
+        flags = [ir.Constant(_I32, value) for value in (0, 3, 1)]
+        builder.call(prefetch, [pointer, *flags])
+        return context.get_dummy_value()
+
+    return signature, codegen
+
+
+# Along an output row, the footprints of consecutive pixels overlap by most of their six
+# input pixels, so the footprint of every fourth pixel, eight pixels ahead, covers what is
+# about to be read: prefetching it hides the memory latency of lines not yet in cache.
+_PREFETCH_EVERY = 4
+_PREFETCH_AHEAD = 8
+_LINE_ELEMENTS = 8  # float64 per 64-byte cache line
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_footprint(
+    flat: np.ndarray,
+    table: np.ndarray,
+    col: int,
+    row_stride: np.uint64,
+    tap_stride: np.uint64,
+    span: int,
+) -> None:
+    """Prefetch the 6x6 footprint of output pixel ``col``: six rows of ``span`` elements
+    from its first tap on (see :func:`cellcoadd.build.warp._corner`)."""
+    start = _corner(table, col, row_stride, tap_stride)
+    last = np.uint64(span - 1)
+    for _ in range(_N_TAPS):
+        for offset in range(0, span, _LINE_ELEMENTS):
+            _prefetch(flat, start + np.uint64(offset))
+        _prefetch(flat, start + last)
+        start += row_stride
+
+
+_MAX_PLANES_AT_ONCE = 8
+(
+    _block_sums2,
+    _block_sums3,
+    _block_sums4,
+    _block_sums5,
+    _block_sums6,
+    _block_sums7,
+    _block_sums8,
+) = (_make_block_sums(width) for width in range(2, _MAX_PLANES_AT_ONCE + 1))
+
+
+@numba.njit(cache=True, inline="always")
+def _add_sums(
+    out: np.ndarray,
+    row: int,
+    col: int,
+    factors: np.ndarray,
+    first_plane: int,
+    sums: tuple[float, ...],
+    skip: int,
+) -> None:
+    """``out[first_plane + k, row, col] += factors[first_plane + k, col] * sums[k]``,
+    for ``k >= skip``."""
+    for k in range(skip, len(sums)):
+        plane = first_plane + k
+        out[plane, row, col] += factors[plane, col] * sums[k]
 
 
 @numba.njit(cache=True)
@@ -30,55 +181,64 @@ def _accumulate_interleaved(
     scales: np.ndarray,
     plane_scales: np.ndarray,
 ) -> None:
-    """Kernel of :func:`accumulate_warped`; ``flat_pixels`` is ``(ny_in, nx_in, P)`` raveled."""
+    """Kernel of :func:`accumulate_warped`; ``flat_pixels`` is ``(ny_in, nx_in, P)`` raveled.
+
+    Up to eight planes go in one pass over the taps; more go eight at a time, the last
+    group overlapping planes already done (their sums are dropped), so every plane's
+    arithmetic is the same whatever ``P``.
+    """
     n_planes = plane_weights.shape[0]
+    n_cols = x_src.shape[1]
     tap_stride = np.uint64(n_planes)
     row_stride = np.uint64(nx_in) * tap_stride
-    factors = np.empty(n_planes)
+    table = np.empty((_TABLE_ROWS, n_cols))
+    factors = np.empty((n_planes, n_cols))
+    span = _N_TAPS * n_planes  # elements in one row of a footprint
     for row in range(x_src.shape[0]):
-        weights_x, weights_y, first_x, first_y, exact_x, exact_y = _row_weights(x_src, y_src, row)
-        for col in range(x_src.shape[1]):
-            for p in range(n_planes):
-                which = plane_scales[p]
-                weight = plane_weights[p]
-                factors[p] = weight * scales[which, row, col] if which >= 0 else weight
-            if exact_x[col] >= 0 and exact_y[col] >= 0:
-                source = np.uint64(exact_y[col]) * row_stride + np.uint64(exact_x[col]) * tap_stride
+        _row_table(x_src, y_src, row, table)
+        for p in range(n_planes):
+            which = plane_scales[p]
+            weight = plane_weights[p]
+            for col in range(n_cols):
+                factors[p, col] = weight * scales[which, row, col] if which >= 0 else weight
+        for col in range(n_cols):
+            ahead = col + _PREFETCH_AHEAD
+            if col % _PREFETCH_EVERY == 0 and ahead < n_cols:
+                _prefetch_footprint(flat_pixels, table, ahead, row_stride, tap_stride, span)
+            source = _exact_source(table, col, row_stride, tap_stride)
+            if source >= 0:
+                # Integral position: copy, as warp_planes does.
                 for p in range(n_planes):
-                    out[p, row, col] += factors[p] * flat_pixels[source + np.uint64(p)]
+                    value = flat_pixels[np.uint64(source) + np.uint64(p)]
+                    out[p, row, col] += factors[p, col] * value
                 continue
-            wx = (
-                weights_x[0, col],
-                weights_x[1, col],
-                weights_x[2, col],
-                weights_x[3, col],
-                weights_x[4, col],
-                weights_x[5, col],
-            )
-            corner = first_y[col] * row_stride + first_x[col] * tap_stride
-            p = 0
-            while p + 4 <= n_planes:
-                start = corner + np.uint64(p)
-                t0, t1, t2, t3 = _block_sums4(
-                    flat_pixels, start, row_stride, tap_stride, wx, weights_y, col
-                )
-                out[p, row, col] += factors[p] * t0
-                out[p + 1, row, col] += factors[p + 1] * t1
-                out[p + 2, row, col] += factors[p + 2] * t2
-                out[p + 3, row, col] += factors[p + 3] * t3
-                p += 4
-            if p + 2 <= n_planes:
-                start = corner + np.uint64(p)
-                t0, t1 = _block_sums2(
-                    flat_pixels, start, row_stride, tap_stride, wx, weights_y, col
-                )
-                out[p, row, col] += factors[p] * t0
-                out[p + 1, row, col] += factors[p + 1] * t1
-                p += 2
-            if p < n_planes:
-                start = corner + np.uint64(p)
-                total = _block_sum(flat_pixels, start, row_stride, tap_stride, wx, weights_y, col)
-                out[p, row, col] += factors[p] * total
+            corner = _corner(table, col, row_stride, tap_stride)
+            args = (flat_pixels, corner, row_stride, tap_stride, table, col)
+            if n_planes == 1:
+                # A lone plane: its six taps along x are adjacent.
+                total = _block_sum_adjacent(flat_pixels, corner, row_stride, table, col)
+                out[0, row, col] += factors[0, col] * total
+            elif n_planes == 2:
+                _add_sums(out, row, col, factors, 0, _block_sums2(*args), 0)
+            elif n_planes == 3:
+                _add_sums(out, row, col, factors, 0, _block_sums3(*args), 0)
+            elif n_planes == 4:
+                _add_sums(out, row, col, factors, 0, _block_sums4(*args), 0)
+            elif n_planes == 5:
+                _add_sums(out, row, col, factors, 0, _block_sums5(*args), 0)
+            elif n_planes == 6:
+                _add_sums(out, row, col, factors, 0, _block_sums6(*args), 0)
+            elif n_planes == 7:
+                _add_sums(out, row, col, factors, 0, _block_sums7(*args), 0)
+            else:
+                p = 0
+                while p < n_planes:
+                    first = min(p, n_planes - _MAX_PLANES_AT_ONCE)
+                    sums = _block_sums8(
+                        flat_pixels, corner + np.uint64(first), row_stride, tap_stride, table, col
+                    )
+                    _add_sums(out, row, col, factors, first, sums, p - first)
+                    p += _MAX_PLANES_AT_ONCE
 
 
 def accumulate_warped(

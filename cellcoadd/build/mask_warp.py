@@ -7,48 +7,52 @@ whatever the kernel weights there.
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
-from cellcoadd.build.warp import _N_TAPS, KERNEL_HALF_WIDTH, _check_positions
+from cellcoadd.build.lanczos import _N_TAPS, KERNEL_HALF_WIDTH
+from cellcoadd.build.warp import _checked_positions_and_taps
 
 
 @numba.njit(cache=True)
 def _window_or(mask: np.ndarray, x_first: int, y_first: int, nx: int, ny: int) -> np.ndarray:
     """``result[j, i]``: OR of ``mask`` over the 6x6 block whose first pixel is
-    ``(x_first + i, y_first + j)``; separable, as OR is associative."""
+    ``(x_first + i, y_first + j)``; separable, as OR is associative. The inner loops run
+    along rows, so they vectorise."""
     rows = np.zeros((ny + _N_TAPS - 1, nx), dtype=np.int32)
     for j in range(ny + _N_TAPS - 1):
-        for i in range(nx):
-            bits = np.int32(0)
-            for b in range(_N_TAPS):
-                bits |= mask[y_first + j, x_first + i + b]
-            rows[j, i] = bits
+        source = mask[y_first + j, x_first : x_first + nx + _N_TAPS - 1]
+        target = rows[j]
+        for b in range(_N_TAPS):
+            for i in range(nx):
+                target[i] |= source[i + b]
     blocks = np.zeros((ny, nx), dtype=np.int32)
     for j in range(ny):
-        for i in range(nx):
-            bits = np.int32(0)
-            for a in range(_N_TAPS):
-                bits |= rows[j + a, i]
-            blocks[j, i] = bits
+        target = blocks[j]
+        for a in range(_N_TAPS):
+            source = rows[j + a]
+            for i in range(nx):
+                target[i] |= source[i]
     return blocks
 
 
 @numba.njit(cache=True)
-def _mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, out: np.ndarray) -> None:
-    first_x = np.empty(x_src.shape, dtype=np.int64)
-    first_y = np.empty(x_src.shape, dtype=np.int64)
+def _mask_or(
+    mask: np.ndarray,
+    x_src: np.ndarray,
+    y_src: np.ndarray,
+    first_taps: tuple[int, int, int, int],
+    out: np.ndarray,
+) -> None:
+    x_lo, x_hi, y_lo, y_hi = first_taps
+    blocks = _window_or(mask, x_lo, y_lo, x_hi - x_lo + 1, y_hi - y_lo + 1)
+    # Validated positions are >= 2 (first tap >= 0), so truncation is floor.
+    reach = KERNEL_HALF_WIDTH - 1
     for row in range(x_src.shape[0]):
         for col in range(x_src.shape[1]):
-            first_x[row, col] = int(math.floor(x_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
-            first_y[row, col] = int(math.floor(y_src[row, col])) - (KERNEL_HALF_WIDTH - 1)
-    x_lo, y_lo = first_x.min(), first_y.min()
-    blocks = _window_or(mask, x_lo, y_lo, first_x.max() - x_lo + 1, first_y.max() - y_lo + 1)
-    for row in range(x_src.shape[0]):
-        for col in range(x_src.shape[1]):
-            out[row, col] = blocks[first_y[row, col] - y_lo, first_x[row, col] - x_lo]
+            i = np.uint64(np.int64(x_src[row, col]) - reach - x_lo)
+            j = np.uint64(np.int64(y_src[row, col]) - reach - y_lo)
+            out[row, col] = blocks[j, i]
 
 
 def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.ndarray:
@@ -70,9 +74,9 @@ def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.n
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.int32:
         raise ValueError(f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}")
-    x_src, y_src = _check_positions(x_src, y_src, mask.shape)
+    x_src, y_src, first_taps = _checked_positions_and_taps(x_src, y_src, mask.shape)
     out = np.zeros(x_src.shape, dtype=np.int32)
     # Most exposures have no flagged pixel near a cell: nothing to spread then.
     if x_src.size and mask.any():
-        _mask_or(np.ascontiguousarray(mask), x_src, y_src, out)
+        _mask_or(np.ascontiguousarray(mask), x_src, y_src, first_taps, out)
     return out

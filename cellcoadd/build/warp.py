@@ -17,18 +17,17 @@ Conventions
 * Non-finite input values propagate to every output pixel whose 6x6 footprint contains
   them; callers replace masked pixels before warping.
 
-Cost: per output pixel and axis one ``sin``/``cos`` pair of a small angle (a short
-series) and one division. ``sin(pi (d - k)) = (-1)^k sin(pi d)`` is common to all taps
-and cancels in the normalisation; ``sin(pi (d - k) / 3)`` follows from ``sin(pi d / 3)``
-and ``cos(pi d / 3)`` by angle addition with the constants ``cos(k pi/3)``, ``sin(k pi/3)``.
-The weights of a whole output row are computed first in a branch-free loop that the
-compiler vectorises, then applied to every plane.
+The weights of a whole output row are computed first (:mod:`cellcoadd.build.lanczos`),
+then applied to every plane. The 6x6 sums use SIMD vectors of up to
+four doubles (AVX2), written out explicitly (see ``_column_sums``).
 
-Two layouts: :func:`warp_planes` takes the planes one after another ``(P, ny, nx)``;
+Two layouts: :func:`warp_planes` takes the planes one after another ``(P, ny, nx)`` (the
+six taps of a row are adjacent: one vector of 4 and one of 2 per input row);
 :func:`accumulate_warped` takes them interleaved ``(ny, nx, P)``, so the values of all
-planes at an input pixel share cache lines and each 6x6 block is read once for four
-planes, and adds each plane with its own weight and scale straight into the caller's
-sums. Both perform the same operations in the same order: the results are identical.
+planes at an input pixel share cache lines and fill the vector lanes (up to eight planes
+per pass over the 6x6 block), and adds each plane with its own weight and scale straight
+into the caller's sums. Both perform the same operations in the same order on every
+plane: the results are identical bit for bit.
 :func:`warp_mask_or` spreads mask bits over the same footprints (separably).
 """
 
@@ -38,245 +37,140 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.core.base import BaseContext
+from numba.extending import intrinsic
 
-KERNEL_HALF_WIDTH = 3
-"""Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
+from cellcoadd.build.lanczos import (
+    _N_TAPS,
+    _TABLE_ROWS,
+    _WEIGHT_Y,
+    KERNEL_HALF_WIDTH,
+    _corner,
+    _exact_source,
+    _row_table,
+)
 
-_N_TAPS = 2 * KERNEL_HALF_WIDTH
-_INTEGER_TOLERANCE = 1e-9  # px; closer offsets are taken as exact integers
-_HALF_SQRT3 = 0.5 * math.sqrt(3.0)
-_PI_OVER_3 = math.pi / 3.0
+# The 6x6 sums. Every plane is summed the same way whatever the layout, which makes the
+# two layouts' results identical: first the six column sums
+#     c_b = ((wy_0 v[0, b] + wy_1 v[1, b]) + (wy_2 v[2, b] + wy_3 v[3, b]))
+#           + (wy_4 v[4, b] + wy_5 v[5, b])
+# then the same pairwise tree over wx_b c_b, with separate multiplications and additions
+# (no fused multiply-add: the bits do not depend on the processor). The pairwise order
+# shortens the dependency chains. The sums are written in LLVM IR with explicit SIMD
+# vectors, as numba leaves LLVM's straight-line (SLP) vectoriser off and six-tap loops are
+# unrolled before the loop vectoriser sees them. The lanes of a vector are either columns
+# of one plane (planes stored one after the other) or planes of one input pixel (planes
+# interleaved); lane-wise IEEE arithmetic gives the bits of the scalar formula. Every
+# vector load covers taps only: nothing outside the 6x6 footprint is read.
 
-
-@numba.njit(cache=True, inline="always")
-def _sin_cos_small(angle: float) -> tuple[float, float]:
-    """``(sin(angle), cos(angle))`` for ``0 <= angle <= pi/6`` to double precision.
-
-    Taylor series (truncation below 1e-16 on this range); unlike ``math.sin`` it lets the
-    per-row weight loop vectorise.
-    """
-    z = angle * angle
-    sin_value = angle * (
-        1.0
-        + z
-        * (
-            -1.0 / 6.0
-            + z
-            * (
-                1.0 / 120.0
-                + z
-                * (
-                    -1.0 / 5040.0
-                    + z * (1.0 / 362880.0 + z * (-1.0 / 39916800.0 + z / 6227020800.0))
-                )
-            )
-        )
-    )
-    cos_value = 1.0 + z * (
-        -0.5
-        + z
-        * (
-            1.0 / 24.0
-            + z
-            * (
-                -1.0 / 720.0
-                + z
-                * (
-                    1.0 / 40320.0
-                    + z * (-1.0 / 3628800.0 + z * (1.0 / 479001600.0 - z / 87178291200.0))
-                )
-            )
-        )
-    )
-    return sin_value, cos_value
+_I32 = ir.IntType(32)
+_I64 = ir.IntType(64)
+_F64 = ir.DoubleType()
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _axis_weights(
-    positions: np.ndarray, weights: np.ndarray, first_tap: np.ndarray, exact_tap: np.ndarray
-) -> None:
-    """Normalised Lanczos-3 weights along one axis for a row of output pixels.
-
-    Parameters
-    ----------
-    positions : ndarray, shape (n,)
-        Input pixel coordinates of the output pixels.
-    weights : ndarray, shape (6, n)
-        Filled with the weight of tap ``first_tap + j`` in ``weights[j]``.
-    first_tap : ndarray of uint64, shape (n,)
-        Filled with ``floor(position) - 2`` (validated to be non-negative).
-    exact_tap : ndarray of int64, shape (n,)
-        Filled with the input pixel a position is taken to coincide with, or -1.
-
-    Notes
-    -----
-    With ``d = position - floor(position)`` the weight of tap ``k = -2..3`` is
-    proportional to ``(-1)^k sin(pi d) sin(pi (d - k) / 3) / (d - k)^2``; the common
-    factor ``sin(pi d)`` cancels in the normalisation. The kernel is symmetric, so the
-    weights for ``d > 1/2`` are those for ``1 - d`` in reverse order; working with
-    ``min(d, 1 - d)`` keeps ``sin(pi (d - k) / 3) = sin(a) cos(k pi/3) - cos(a) sin(k pi/3)``
-    (``a = pi d / 3``) free of cancellation. The loop is branch-free so it vectorises.
-    """
-    for i in range(positions.shape[0]):
-        floor_position = math.floor(positions[i])
-        offset = positions[i] - floor_position
-        mirrored = offset > 0.5
-        near = 1.0 - offset if mirrored else offset
-        sin_a, cos_a = _sin_cos_small(_PI_OVER_3 * near)
-        # Numerators sin(pi (d - k) / 3) up to the sign (-1)^k, for k = -2..3.
-        s0 = _HALF_SQRT3 * cos_a - 0.5 * sin_a
-        s1 = -(0.5 * sin_a + _HALF_SQRT3 * cos_a)
-        s2 = sin_a
-        s3 = _HALF_SQRT3 * cos_a - 0.5 * sin_a
-        s4 = -(0.5 * sin_a + _HALF_SQRT3 * cos_a)
-        s5 = sin_a
-        # Squared distances (d - k)^2. Dividing by each costs six divisions; multiplying
-        # every numerator by the product of the *other* five squares instead gives the
-        # same ratios, which is all the normalisation needs, with one division in total.
-        q0 = (near + 2.0) * (near + 2.0)
-        q1 = (near + 1.0) * (near + 1.0)
-        q2 = near * near
-        q3 = (near - 1.0) * (near - 1.0)
-        q4 = (near - 2.0) * (near - 2.0)
-        q5 = (near - 3.0) * (near - 3.0)
-        q01 = q0 * q1
-        q012 = q01 * q2
-        q45 = q4 * q5
-        q345 = q3 * q45
-        v0 = s0 * (q1 * q2 * q345)
-        v1 = s1 * (q0 * q2 * q345)
-        v2 = s2 * (q01 * q345)
-        v3 = s3 * (q012 * q45)
-        v4 = s4 * (q012 * q3 * q5)
-        v5 = s5 * (q012 * q3 * q4)
-        inverse_total = 1.0 / (v0 + v1 + v2 + v3 + v4 + v5)
-        integral = near < _INTEGER_TOLERANCE
-        # For an integral position the expressions above are 0/0; the selects drop them.
-        v0 = 0.0 if integral else v0 * inverse_total
-        v1 = 0.0 if integral else v1 * inverse_total
-        v2 = 1.0 if integral else v2 * inverse_total
-        v3 = 0.0 if integral else v3 * inverse_total
-        v4 = 0.0 if integral else v4 * inverse_total
-        v5 = 0.0 if integral else v5 * inverse_total
-        weights[0, i] = v5 if mirrored else v0
-        weights[1, i] = v4 if mirrored else v1
-        weights[2, i] = v3 if mirrored else v2
-        weights[3, i] = v2 if mirrored else v3
-        weights[4, i] = v1 if mirrored else v4
-        weights[5, i] = v0 if mirrored else v5
-        floor_index = np.int64(floor_position)
-        first_tap[i] = np.uint64(floor_index - 2)
-        coincident = floor_index + 1 if mirrored else floor_index
-        exact_tap[i] = coincident if integral else -1
-
-
-@numba.njit(cache=True, inline="always")
-def _tap_row(
-    flat: np.ndarray,
-    start: np.uint64,
-    tap_stride: np.uint64,
-    wx0: float,
-    wx1: float,
-    wx2: float,
-    wx3: float,
-    wx4: float,
-    wx5: float,
-) -> float:
-    """Six x-taps of one input row, summed left to right (the order fixes the bits)."""
+def _is_flat(array_type: types.Type) -> bool:
+    """Whether the sums can read ``array_type`` by flat index: 1-D, contiguous, floats."""
     return (
-        wx0 * flat[start]
-        + wx1 * flat[start + tap_stride]
-        + wx2 * flat[start + np.uint64(2) * tap_stride]
-        + wx3 * flat[start + np.uint64(3) * tap_stride]
-        + wx4 * flat[start + np.uint64(4) * tap_stride]
-        + wx5 * flat[start + np.uint64(5) * tap_stride]
+        isinstance(array_type, types.Array)
+        and array_type.ndim == 1
+        and array_type.layout == "C"
+        and array_type.dtype in (types.float32, types.float64)
     )
 
 
-@numba.njit(cache=True, inline="always")
-def _block_sum(
-    flat: np.ndarray,
-    corner: np.uint64,
-    row_stride: np.uint64,
-    tap_stride: np.uint64,
-    wx: tuple[float, float, float, float, float, float],
-    weights_y: np.ndarray,
-    col: int,
-) -> float:
-    """The 6x6 weighted sum of one plane: rows of taps accumulated from the first."""
-    wx0, wx1, wx2, wx3, wx4, wx5 = wx
-    total = 0.0
+def _splat(builder: ir.IRBuilder, value: ir.Value, width: int) -> ir.Value:
+    """``<width x double>`` with every lane equal to ``value``."""
+    vector = builder.insert_element(
+        ir.Constant(ir.VectorType(_F64, width), ir.Undefined), value, ir.Constant(_I32, 0)
+    )
+    lanes = ir.Constant(ir.VectorType(_I32, width), [0] * width)
+    return builder.shuffle_vector(vector, vector, lanes)
+
+
+def _tree_sum(builder: ir.IRBuilder, terms: list[ir.Value]) -> ir.Value:
+    """``((t0 + t1) + (t2 + t3)) + (t4 + t5)`` of six LLVM values."""
+    return builder.fadd(
+        builder.fadd(builder.fadd(terms[0], terms[1]), builder.fadd(terms[2], terms[3])),
+        builder.fadd(terms[4], terms[5]),
+    )
+
+
+def _column_sums(
+    context: BaseContext,
+    builder: ir.IRBuilder,
+    flat_type: types.Array,
+    flat: ir.Value,
+    start: ir.Value,
+    row_stride: ir.Value,
+    weights_y: list[ir.Value],
+    width: int,
+) -> ir.Value:
+    """``<width x double>``: ``sum_a weights_y[a] * flat[start + a row_stride + lane]``."""
+    data = context.make_array(flat_type)(context, builder, flat).data
+    element = context.get_data_type(flat_type.dtype)
+    loaded_type = ir.VectorType(element, width)
+    terms = []
     for a in range(_N_TAPS):
-        start = corner + np.uint64(a) * row_stride
-        total += weights_y[a, col] * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-    return total
+        index = builder.add(start, builder.mul(row_stride, ir.Constant(_I64, a)))
+        pointer = builder.bitcast(
+            builder.gep(data, [index], inbounds=True), loaded_type.as_pointer()
+        )
+        values = builder.load(pointer, align=flat_type.dtype.bitwidth // 8, typ=loaded_type)
+        if element != _F64:
+            values = builder.fpext(values, ir.VectorType(_F64, width))
+        terms.append(builder.fmul(weights_y[a], values))
+    return _tree_sum(builder, terms)
 
 
-@numba.njit(cache=True, inline="always")
-def _block_sums4(
-    flat: np.ndarray,
-    corner: np.uint64,
-    row_stride: np.uint64,
-    tap_stride: np.uint64,
-    wx: tuple[float, float, float, float, float, float],
-    weights_y: np.ndarray,
-    col: int,
-) -> tuple[float, float, float, float]:
-    """:func:`_block_sum` of four interleaved planes at once (same operations per plane).
+def _table_weights(
+    context: BaseContext,
+    builder: ir.IRBuilder,
+    table_type: types.Array,
+    table: ir.Value,
+    col: ir.Value,
+    first_row: int,
+) -> list[ir.Value]:
+    """LLVM values of ``table[first_row + j, col]`` for the six taps ``j``.
 
-    Their values of one input pixel share a cache line, so one pass over the 6x6 block
-    serves all four.
+    Loaded inside each sum: as memory operands of broadcasts they cost no registers.
     """
-    wx0, wx1, wx2, wx3, wx4, wx5 = wx
-    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
-    total0 = total1 = total2 = total3 = 0.0
-    for a in range(_N_TAPS):
-        start = corner + np.uint64(a) * row_stride
-        wy = weights_y[a, col]
-        total0 += wy * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-        total1 += wy * _tap_row(flat, start + one, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-        total2 += wy * _tap_row(flat, start + two, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-        total3 += wy * _tap_row(flat, start + three, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-    return total0, total1, total2, total3
+    array = context.make_array(table_type)(context, builder, table)
+    rows = [ir.Constant(_I64, first_row + j) for j in range(_N_TAPS)]
+    return [
+        builder.load(
+            cgutils.get_item_pointer(context, builder, table_type, array, [row, col]), typ=_F64
+        )
+        for row in rows
+    ]
 
 
-@numba.njit(cache=True, inline="always")
-def _block_sums2(
-    flat: np.ndarray,
-    corner: np.uint64,
-    row_stride: np.uint64,
-    tap_stride: np.uint64,
-    wx: tuple[float, float, float, float, float, float],
-    weights_y: np.ndarray,
-    col: int,
-) -> tuple[float, float]:
-    """:func:`_block_sums4` for two interleaved planes."""
-    wx0, wx1, wx2, wx3, wx4, wx5 = wx
-    one = np.uint64(1)
-    total0 = total1 = 0.0
-    for a in range(_N_TAPS):
-        start = corner + np.uint64(a) * row_stride
-        wy = weights_y[a, col]
-        total0 += wy * _tap_row(flat, start, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-        total1 += wy * _tap_row(flat, start + one, tap_stride, wx0, wx1, wx2, wx3, wx4, wx5)
-    return total0, total1
+@intrinsic
+def _block_sum_adjacent(typingctx, flat, corner, row_stride, table, col):
+    """6x6 weighted sum of one plane whose taps along x are adjacent in ``flat``.
 
+    ``flat[corner]`` is the first tap; rows of taps are ``row_stride`` apart; the weights
+    are those of output pixel ``col`` in ``table`` (see :func:`_row_table`).
+    """
+    if not _is_flat(flat):
+        return None
+    signature = types.float64(flat, corner, row_stride, table, col)
 
-@numba.njit(cache=True, inline="always")
-def _row_weights(
-    x_src: np.ndarray, y_src: np.ndarray, row: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Axis weights, first taps and exact taps of output row ``row`` (see _axis_weights)."""
-    n_cols = x_src.shape[1]
-    weights_x = np.empty((_N_TAPS, n_cols))
-    weights_y = np.empty((_N_TAPS, n_cols))
-    first_x = np.empty(n_cols, dtype=np.uint64)
-    first_y = np.empty(n_cols, dtype=np.uint64)
-    exact_x = np.empty(n_cols, dtype=np.int64)
-    exact_y = np.empty(n_cols, dtype=np.int64)
-    _axis_weights(x_src[row], weights_x, first_x, exact_x)
-    _axis_weights(y_src[row], weights_y, first_y, exact_y)
-    return weights_x, weights_y, first_x, first_y, exact_x, exact_y
+    def codegen(context, builder, signature, args):
+        flat, corner, row_stride, table, col = args
+        flat_type, table_type = signature.args[0], signature.args[3]
+        weights_y = _table_weights(context, builder, table_type, table, col, _WEIGHT_Y)
+        weights_x = _table_weights(context, builder, table_type, table, col, 0)
+        columns = []
+        for first, width in ((0, 4), (4, 2)):
+            start = builder.add(corner, ir.Constant(_I64, first))
+            splats = [_splat(builder, weight, width) for weight in weights_y]
+            sums = _column_sums(context, builder, flat_type, flat, start, row_stride, splats, width)
+            columns += [builder.extract_element(sums, ir.Constant(_I32, k)) for k in range(width)]
+        return _tree_sum(builder, [builder.fmul(weights_x[b], columns[b]) for b in range(_N_TAPS)])
+
+    return signature, codegen
 
 
 @numba.njit(cache=True)
@@ -290,38 +184,33 @@ def _warp_row(
     scale: np.ndarray,
     use_scale: bool,
     row: int,
+    table: np.ndarray,
 ) -> None:
     """Accumulate ``weight * scale * warp(planes)`` into output row ``row`` of ``out``.
 
     ``flat_planes`` is the C-ordered ``(P, ny_in, nx_in)`` stack raveled; unsigned flat
-    indices spare numba the negative-index wrap-around test on every tap.
+    indices spare numba the negative-index wrap-around test on every tap. ``table`` is
+    scratch space of shape ``(_TABLE_ROWS, nx_out)``.
     """
     n_planes = out.shape[0]
     ny_in, nx_in = plane_shape
     row_stride = np.uint64(nx_in)
     plane_stride = np.uint64(ny_in * nx_in)
     one = np.uint64(1)
-    weights_x, weights_y, first_x, first_y, exact_x, exact_y = _row_weights(x_src, y_src, row)
+    _row_table(x_src, y_src, row, table)
     for col in range(x_src.shape[1]):
         factor = weight * scale[row, col] if use_scale else weight
-        if exact_x[col] >= 0 and exact_y[col] >= 0:
+        source = _exact_source(table, col, row_stride, one)
+        if source >= 0:
             # Integral position: copy (bit for bit, and immune to non-finite neighbours).
-            source = np.uint64(exact_y[col]) * row_stride + np.uint64(exact_x[col])
             for p in range(n_planes):
-                out[p, row, col] += factor * flat_planes[np.uint64(p) * plane_stride + source]
+                value = flat_planes[np.uint64(p) * plane_stride + np.uint64(source)]
+                out[p, row, col] += factor * value
             continue
-        wx = (
-            weights_x[0, col],
-            weights_x[1, col],
-            weights_x[2, col],
-            weights_x[3, col],
-            weights_x[4, col],
-            weights_x[5, col],
-        )
-        corner = first_y[col] * row_stride + first_x[col]
+        corner = _corner(table, col, row_stride, one)
         for p in range(n_planes):
             start = np.uint64(p) * plane_stride + corner
-            total = _block_sum(flat_planes, start, row_stride, one, wx, weights_y, col)
+            total = _block_sum_adjacent(flat_planes, start, row_stride, table, col)
             out[p, row, col] += factor * total
 
 
@@ -336,8 +225,9 @@ def _warp_serial(
     scale: np.ndarray,
     use_scale: bool,
 ) -> None:
+    table = np.empty((_TABLE_ROWS, x_src.shape[1]))
     for row in range(x_src.shape[0]):
-        _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row)
+        _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -353,13 +243,23 @@ def _warp_parallel(
 ) -> None:
     # Rows are independent, so results do not depend on the number of threads.
     for row in numba.prange(x_src.shape[0]):
-        _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row)
+        table = np.empty((_TABLE_ROWS, x_src.shape[1]))
+        _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
 
 
 def _check_positions(
     x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate the output->input positions; return them as C-contiguous float64 arrays."""
+    x_src, y_src, _ = _checked_positions_and_taps(x_src, y_src, input_shape)
+    return x_src, y_src
+
+
+def _checked_positions_and_taps(
+    x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """:func:`_check_positions`, and the range of first taps ``(x_lo, x_hi, y_lo, y_hi)``
+    (all zero for an empty output)."""
     x_src = np.asarray(x_src)
     y_src = np.asarray(y_src)
     for name, values in (("x_src", x_src), ("y_src", y_src)):
@@ -370,19 +270,24 @@ def _check_positions(
     if x_src.shape != y_src.shape:
         raise ValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
     if x_src.size == 0:
-        return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src)
-    if not (np.isfinite(x_src).all() and np.isfinite(y_src).all()):
+        return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (0, 0, 0, 0)
+    # min and max propagate NaN and expose infinities: one pass each checks both.
+    ranges = [(float(values.min()), float(values.max())) for values in (x_src, y_src)]
+    if not all(math.isfinite(bound) for bounds in ranges for bound in bounds):
         raise ValueError("x_src and y_src must be finite")
     ny_in, nx_in = input_shape
-    for axis, values, size in (("x", x_src, nx_in), ("y", y_src, ny_in)):
-        first_tap = int(np.floor(values.min())) - (KERNEL_HALF_WIDTH - 1)
-        last_tap = int(np.floor(values.max())) + KERNEL_HALF_WIDTH
+    taps = []
+    for axis, (low, high), size in (("x", ranges[0], nx_in), ("y", ranges[1], ny_in)):
+        first_tap = math.floor(low) - (KERNEL_HALF_WIDTH - 1)
+        last_tap = math.floor(high) + KERNEL_HALF_WIDTH
         if first_tap < 0 or last_tap > size - 1:
             raise ValueError(
                 f"kernel taps along {axis} span input pixels [{first_tap}, {last_tap}] "
                 f"but the input has pixels [0, {size - 1}]"
             )
-    return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src)
+        taps += [first_tap, last_tap - (2 * KERNEL_HALF_WIDTH - 1)]
+    x_lo, x_hi, y_lo, y_hi = taps
+    return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (x_lo, x_hi, y_lo, y_hi)
 
 
 def warp_planes(
