@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import pickle
+import time
+
 import galsim
 import numpy as np
 import pytest
@@ -273,18 +276,23 @@ def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
     assert sum(not c.is_empty for c in serial.cells.values()) >= 4
 
 
-def test_patch_identical_on_a_dask_cluster(tract, patch_inputs):
+@pytest.fixture(scope="module")
+def dask_client():
     distributed = pytest.importorskip("distributed")
-    exposures, serial = patch_inputs
     with (
         distributed.LocalCluster(
             n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
-        on_dask = build_patch(
-            tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=client
-        )
+        yield client
+
+
+def test_patch_identical_on_a_dask_cluster(tract, patch_inputs, dask_client):
+    exposures, serial = patch_inputs
+    on_dask = build_patch(
+        tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=dask_client
+    )
     _assert_same_patch(serial, on_dask)
 
 
@@ -320,3 +328,33 @@ def test_bad_inputs_are_refused_or_recorded(tract):
     bad_psf.psf = broken_psf
     coadd = build_cell(cell, [good, bad_psf], BUILD)
     assert {r.visit: r.status for r in coadd.inputs} == {1: "used", 3: "bad_psf"}
+
+
+def test_dask_tasks_carry_references_to_exposures_not_pixels(
+    tract, patch_inputs, dask_client, monkeypatch
+):
+    distributed = pytest.importorskip("distributed")
+    exposures, serial = patch_inputs
+    one_exposure = len(pickle.dumps(exposures[0], protocol=5))
+    tasks = []  # per task: its pickled size and whether each candidate is a future
+    submit = dask_client.submit
+
+    def recording_submit(function, *args, **kwargs):
+        tasks.append((len(pickle.dumps(args, protocol=5)), [type(c) for c in args[1]]))
+        return submit(function, *args, **kwargs)
+
+    monkeypatch.setattr(dask_client, "submit", recording_submit)
+    on_dask = build_patch(
+        tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=dask_client
+    )
+    _assert_same_patch(serial, on_dask)
+    assert len(tasks) == len(serial.cells)
+    assert sum(len(kinds) for _, kinds in tasks) >= len(serial.cells)  # exposures referenced
+    assert all(kind is distributed.Future for _, kinds in tasks for kind in kinds)
+    assert max(size for size, _ in tasks) < one_exposure / 10
+    # the exposures broadcast to the workers are released once the patch is built
+    for _ in range(100):
+        if not dask_client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)):
+            break
+        time.sleep(0.05)
+    assert dask_client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)) == 0

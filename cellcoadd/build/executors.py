@@ -7,6 +7,28 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
 
 
+def dask_client(scheduler: object) -> tuple[Any, Callable[[], None] | None]:
+    """The ``distributed.Client`` for ``scheduler`` and how to release it.
+
+    Parameters
+    ----------
+    scheduler : str or distributed.Client
+        A dask.distributed scheduler address (a client is opened, and closed by the
+        release function) or an existing client (returned as it is, left open).
+
+    Returns
+    -------
+    client, release
+        ``release`` is None for a client given here; otherwise call it when done.
+    """
+    from distributed import Client  # optional: the dask extra
+
+    if isinstance(scheduler, Client):
+        return scheduler, None
+    client = Client(scheduler)  # ours: closed at the end, so nothing lingers
+    return client, client.close
+
+
 def resolve_executor(
     executor: Executor | None,
     workers: int,
@@ -25,8 +47,8 @@ def resolve_executor(
         Size of a local process pool when neither ``executor`` nor ``scheduler`` is given;
         1 means run serially in this process (``None`` is returned).
     scheduler : str or distributed.Client, optional
-        A dask.distributed scheduler address (a client is opened, and closed by the
-        release function) or an existing client (left open).
+        A dask.distributed scheduler address or client (see :func:`dask_client`); its
+        ``concurrent.futures`` executor is returned.
     initializer, initargs
         Run in each process of a pool created here (not on other executors).
 
@@ -38,12 +60,8 @@ def resolve_executor(
     if executor is not None:
         return executor, None
     if scheduler is not None:
-        from distributed import Client  # optional: the dask extra
-
-        if isinstance(scheduler, Client):
-            return scheduler.get_executor(), None
-        client = Client(scheduler)  # ours: closed at the end, so nothing lingers
-        return client.get_executor(), client.close
+        client, release = dask_client(scheduler)
+        return client.get_executor(), release
     if workers > 1:
         pool = ProcessPoolExecutor(max_workers=workers, initializer=initializer, initargs=initargs)
         return pool, lambda: pool.shutdown(wait=True, cancel_futures=True)
