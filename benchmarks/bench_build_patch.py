@@ -1,11 +1,12 @@
 """Parallel speed-up of ``build_patch`` and proof that the outputs do not depend on it.
 
-The job (default): the demo field simulation scaled up to a patch of 6 x 6 inner cells plus
-a ring of border cells (8 x 8 = 64 cells of 250 x 250 px at 0.2 arcsec/px), observed in 20
-dithered visits by the demo focal plane (3 x 3 CCDs of 400 x 400 px at 0.27 arcsec/px:
-180 exposures, stars and galaxies, masks, noise), K = 3 noise realizations. ``--cells``
-and ``--ccd`` make a bigger patch and bigger CCDs; the focal plane then gets enough CCDs
-to cover the patch at every dither.
+The job (default): the demo field simulation scaled up to a patch of 10 x 10 inner cells
+plus a ring of border cells (12 x 12 = 144 cells of 250 x 250 px at 0.2 arcsec/px),
+observed in 20 dithered visits by a focal plane of 2 x 2 CCDs of 1000 x 1000 px at 0.27
+arcsec/px (80 exposures, stars and galaxies, masks, noise), K = 3 noise realizations.
+``--cells`` and ``--ccd`` change the patch and CCD sizes (``--cells 6 --ccd 400``: the
+demo's 3 x 3 CCDs of 400 px, 64 cells); the focal plane gets enough CCDs to cover the
+patch at every dither.
 
 ``build_patch`` builds it serially in this process, on its own process pool of 2 workers
 and on a dask ``LocalCluster`` of 2 single-threaded worker processes started the way a
@@ -156,8 +157,8 @@ def run_on_dask(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1)
-    parser.add_argument("--cells", type=int, default=6, help="inner cells per patch side")
-    parser.add_argument("--ccd", type=int, default=400, help="CCD side, pixels")
+    parser.add_argument("--cells", type=int, default=10, help="inner cells per patch side")
+    parser.add_argument("--ccd", type=int, default=1000, help="CCD side, pixels")
     parser.add_argument("--visits", type=int, default=20)
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--no-dask", action="store_true", help="skip the dask cluster")
