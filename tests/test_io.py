@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import fitsio
@@ -25,6 +21,7 @@ from coadd_factory import (
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from kill_writer import kill_mid_write
 
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 from cellcoadd.geometry.config import SkyMapConfig
@@ -453,23 +450,7 @@ def test_sigkill_mid_write_leaves_previous_file(tmp_path, patch, name, previous)
     if previous:
         api.write(patch, target)
     before = target.read_bytes() if previous else None
-    script = _KILL_SCRIPT.format(tests=str(Path(__file__).parent), target=str(target))
-    process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
-    try:
-        assert process.stdout.readline().strip() == "writing"
-        partial = None
-        deadline = time.monotonic() + 60
-        while partial is None and time.monotonic() < deadline and process.poll() is None:
-            temps = list(tmp_path.glob(f".{name}.tmp-*"))
-            if temps and temps[0].exists() and temps[0].stat().st_size > 2_000_000:
-                partial = temps[0]
-            else:
-                time.sleep(0.002)
-        process.send_signal(signal.SIGKILL)
-    finally:
-        process.kill()
-        process.wait()
-    assert partial is not None, "the writer finished before it could be interrupted"
+    kill_mid_write(_KILL_SCRIPT, target)
     if previous:
         assert target.read_bytes() == before
         assert_same(api.read(target), patch)

@@ -7,10 +7,8 @@ import errno
 import functools
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 import types
 from pathlib import Path
 
@@ -19,6 +17,7 @@ import h5py
 import pytest
 from coadd_factory import MEDIUM, SMALL, make_patch, tiny_exposures, tiny_patch
 from exposure_factory import make_exposure
+from kill_writer import kill_mid_write
 
 from cellcoadd import Exposure
 from cellcoadd.io import api, exposure_io
@@ -66,38 +65,13 @@ print("done", flush=True)
 """
 
 
-def _kill_mid_write(script: str, target: Path) -> None:
-    """Run ``script`` (which writes ``target``) and SIGKILL it once its temporary file
-    holds more than 2 MB."""
-    code = script.format(tests=str(TESTS), target=str(target))
-    process = subprocess.Popen(
-        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    partial = None
-    try:
-        if process.stdout.readline().strip() != "writing":
-            process.wait(timeout=60)
-            pytest.fail(f"the writer did not start: {process.stderr.read()[-2000:]}")
-        deadline = time.monotonic() + 60
-        while partial is None and time.monotonic() < deadline and process.poll() is None:
-            for temporary in target.parent.glob(f".{target.name}.tmp-*"):
-                if temporary.exists() and temporary.stat().st_size > 2_000_000:
-                    partial = temporary
-            time.sleep(0.002)
-        process.send_signal(signal.SIGKILL)
-    finally:
-        process.kill()
-        process.wait()
-    assert partial is not None, "the writer finished before it could be interrupted"
-
-
 @pytest.mark.parametrize("previous", [True, False])
 def test_killed_exposure_writer_leaves_the_previous_file(tmp_path, exposure, previous):
     target = tmp_path / "exposure.fits"
     if previous:
         write_exposure(exposure, target)
     before = target.read_bytes() if previous else None
-    _kill_mid_write(_KILL_EXPOSURE, target)
+    kill_mid_write(_KILL_EXPOSURE, target)
     if previous:
         assert target.read_bytes() == before
         assert read_exposure(target).key == exposure.key
@@ -110,7 +84,7 @@ def test_killed_compressed_coadd_writer_leaves_the_previous_file(tmp_path):
     small = make_patch(SMALL, seed=4)
     api.write(small, target)
     before = target.read_bytes()
-    _kill_mid_write(_KILL_COADD, target)
+    kill_mid_write(_KILL_COADD, target)
     assert target.read_bytes() == before
     assert api.read(target).equals(small)
 
@@ -145,6 +119,13 @@ def small_disk(tmp_path):
             subprocess.run([umount, "-l", str(point)])
 
 
+def _assert_exposure_too_big_for(directory: Path) -> None:
+    big_exposure = make_exposure((30.0, -10.0), shape=(800, 800))  # 5 MB of float64
+    with pytest.raises(OSError) as info:
+        write_exposure(big_exposure, directory / "exposure.fits")
+    _assert_disk_full(info, directory / "exposure.fits")
+
+
 def test_full_disk_is_refused_before_writing(small_disk):
     small = make_patch(SMALL, seed=1)
     for name in ("patch.fits", "patch.h5"):
@@ -155,10 +136,7 @@ def test_full_disk_is_refused_before_writing(small_disk):
             api.write(_BIG, target, overwrite=True)
         _assert_disk_full(info, target)
         assert target.read_bytes() == before
-    big_exposure = make_exposure((30.0, -10.0), shape=(800, 800))  # 5 MB of float64
-    with pytest.raises(OSError) as info:
-        write_exposure(big_exposure, small_disk / "exposure.fits")
-    _assert_disk_full(info, small_disk / "exposure.fits")
+    _assert_exposure_too_big_for(small_disk)
     assert sorted(os.listdir(small_disk)) == ["patch.fits", "patch.h5"]
 
 
@@ -173,10 +151,7 @@ def test_disk_filling_up_during_a_fits_write(small_disk, monkeypatch):
         api.write(_BIG, target, overwrite=True)
     _assert_disk_full(info, target)
     assert target.read_bytes() == before
-    big_exposure = make_exposure((30.0, -10.0), shape=(800, 800))  # 5 MB of float64
-    with pytest.raises(OSError) as info:
-        write_exposure(big_exposure, small_disk / "exposure.fits")
-    _assert_disk_full(info, small_disk / "exposure.fits")
+    _assert_exposure_too_big_for(small_disk)
     assert os.listdir(small_disk) == ["patch.fits"]
 
 

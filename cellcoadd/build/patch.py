@@ -68,10 +68,14 @@ def _build_one(
         return build_cell(cell, near, config, seed, mask_bits=mask_bits)
     except Exception as err:
         # the traceback text travels with the error across process boundaries
-        raise CellBuildError(
-            f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}\n"
-            f"{traceback.format_exc()}"
-        ) from None
+        raise _cell_failed(cell, err, "\n" + traceback.format_exc()) from None
+
+
+def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuildError:
+    """The error naming ``cell`` for ``err`` (with ``details``, e.g. a traceback)."""
+    return CellBuildError(
+        f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}{details}"
+    )
 
 
 def _run_on(
@@ -100,9 +104,7 @@ def _run_on(
             except BrokenExecutor as err:
                 raise CellBuildError(_died_message(submitted, err)) from err
             except Exception as err:  # e.g. dask's KilledWorker: names this very cell
-                raise CellBuildError(
-                    f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}"
-                ) from err
+                raise _cell_failed(cell, err) from err
             bar.update()
     except BaseException:
         for future, _ in submitted:
@@ -150,9 +152,7 @@ def _run_on_dask(
             except CellBuildError:
                 raise
             except Exception as err:  # e.g. KilledWorker: names this very cell
-                raise CellBuildError(
-                    f"cell {cell.index} of tract {cell.tract} failed: {type(err).__name__}: {err}"
-                ) from err
+                raise _cell_failed(cell, err) from err
             bar.update()
     except BaseException:
         client.cancel([future for future, _ in pending.values()])
