@@ -131,7 +131,7 @@ def _prefetch_footprint(
     span: int,
 ) -> None:
     """Prefetch the 6x6 footprint of output pixel ``col``: six rows of ``span`` elements
-    from its first tap on (see :func:`cellcoadd.build.warp._corner`)."""
+    from its first tap on (see :func:`cellcoadd.build.lanczos._corner`)."""
     start = _corner(table, col, row_stride, tap_stride)
     last = np.uint64(span - 1)
     for _ in range(_N_TAPS):

@@ -151,7 +151,8 @@ def _block_sum_adjacent(typingctx, flat, corner, row_stride, table, col):
     """6x6 weighted sum of one plane whose taps along x are adjacent in ``flat``.
 
     ``flat[corner]`` is the first tap; rows of taps are ``row_stride`` apart; the weights
-    are those of output pixel ``col`` in ``table`` (see :func:`_row_table`).
+    are those of output pixel ``col`` in ``table`` (see
+    :func:`cellcoadd.build.lanczos._row_table`).
     """
     if not _is_flat(flat):
         return None
