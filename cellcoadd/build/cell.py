@@ -31,8 +31,9 @@ from cellcoadd.model.maskbits import MaskBits
 class _Sums:
     """Running weighted sums of one cell's planes (float64 for exact accumulation).
 
-    One array holds them all, in the order of :func:`_input_pixels` (image, K noise
-    realizations, variance, masked fraction), so one kernel call adds an exposure.
+    One array holds them all, in the order of
+    :func:`~cellcoadd.build.input_planes.input_planes` (image, K noise realizations,
+    variance, masked fraction), so one kernel call adds an exposure.
     """
 
     def __init__(self, shape: tuple[int, int], n_noise: int, psf_size: int) -> None:
