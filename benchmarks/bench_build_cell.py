@@ -45,7 +45,7 @@ def measure_one(n_exposures: int, repeats: int, seed: int) -> dict[str, float]:
     """Time and peak memory of building the benchmark cell from ``n_exposures`` inputs."""
     import numba
 
-    from cellcoadd.build.cell import build_cell
+    from cellcoadd.builder.cell import build_cell
     from cellcoadd.model.build_config import BuildConfig
 
     numba.set_num_threads(1)
@@ -83,7 +83,7 @@ def profile_stages(n_exposures: int, seed: int) -> dict[str, float]:
 
     import numba
 
-    from cellcoadd.build.cell import build_cell
+    from cellcoadd.builder.cell import build_cell
 
     numba.set_num_threads(1)
     cell = lsst_skymap()[0].cell(*CELL_INDEX)

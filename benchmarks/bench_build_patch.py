@@ -44,9 +44,9 @@ from typing import Any  # noqa: E402
 
 from common import format_table, machine_summary, median_seconds  # noqa: E402
 
-from cellcoadd.build.cell import build_cell  # noqa: E402
-from cellcoadd.build.patch import build_patch  # noqa: E402
-from cellcoadd.build.select import exposures_near_cells  # noqa: E402
+from cellcoadd.builder.cell import build_cell  # noqa: E402
+from cellcoadd.builder.patch import build_patch  # noqa: E402
+from cellcoadd.builder.select import exposures_near_cells  # noqa: E402
 from cellcoadd.geometry import SkyMap, SkyMapConfig  # noqa: E402
 from cellcoadd.geometry.tract import Cell, Patch  # noqa: E402
 from cellcoadd.model.build_config import BuildConfig  # noqa: E402

@@ -37,8 +37,8 @@ import numpy as np
 from common import format_table, machine_summary
 from scipy import ndimage
 
-from cellcoadd.build.accumulate import accumulate_warped
-from cellcoadd.build.warp import warp_planes
+from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.warp import warp_planes
 
 OUTPUT_SIZE = 250
 COADD_SCALE = 0.2  # arcsec / px

@@ -19,7 +19,7 @@ import argparse
 import json
 import math
 
-from cellcoadd.shear import format_bias_table, validate_shear
+from cellcoadd.pipelines import format_bias_table, validate_shear
 
 #: sigma(m1) of the paper's metacal rows.
 PAPER_SIGMA_M = 4.0e-4

@@ -1,51 +1,61 @@
 """cellcoadd: cell-based coadds for weak-lensing shear measurement.
 
-The public API is re-exported here; see ``docs/`` for the tutorial and conventions.
-``cellcoadd.open`` opens a coadd file lazily (it shadows the built-in only inside this
-namespace).
+The public API is re-exported here lazily: ``import cellcoadd`` loads no numba, GalSim,
+matplotlib or dask; each name is imported from its home module on first use (see
+``docs/`` for the tutorial and conventions). ``cellcoadd.open`` opens a coadd file lazily
+(it shadows the built-in only inside this namespace).
 """
 
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
+
 from cellcoadd._version import __version__
-from cellcoadd.build import CellBuildError, build_cell, build_patch
-from cellcoadd.geometry import (
-    Box,
-    Cell,
-    Patch,
-    SkyMap,
-    SkyMapConfig,
-    Tract,
-    flag_unique,
-    trim_to_cell,
-    trim_to_patch,
-)
-from cellcoadd.io import (
-    CellCoaddFormatError,
-    convert,
-    open,
-    read,
-    read_cell,
-    read_exposure,
-    write,
-    write_exposure,
-)
-from cellcoadd.model.build_config import BuildConfig
-from cellcoadd.model.cell_coadd import CellCoadd, CellCoaddError
-from cellcoadd.model.exposure import Exposure, ExposureError
-from cellcoadd.model.inputs import InputRecord
-from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
-from cellcoadd.plots import plot_patch_layout
-from cellcoadd.shear import (
-    EmptyCellError,
-    ValidationSettings,
-    measure_metacal,
-    to_ngmix,
-    to_observation,
-    validate_shear,
-)
+
+#: public name -> module that defines it
+_EXPORTS: dict[str, str] = {
+    "Box": "cellcoadd.geometry",
+    "Cell": "cellcoadd.geometry",
+    "Patch": "cellcoadd.geometry",
+    "SkyMap": "cellcoadd.geometry",
+    "SkyMapConfig": "cellcoadd.geometry",
+    "Tract": "cellcoadd.geometry",
+    "flag_unique": "cellcoadd.geometry",
+    "trim_to_cell": "cellcoadd.geometry",
+    "trim_to_patch": "cellcoadd.geometry",
+    "CellCoaddError": "cellcoadd.errors",
+    "CellCoaddFormatError": "cellcoadd.errors",
+    "CellBuildError": "cellcoadd.errors",
+    "ExposureError": "cellcoadd.errors",
+    "EmptyCellError": "cellcoadd.errors",
+    "BuildConfig": "cellcoadd.model.build_config",
+    "CellCoadd": "cellcoadd.model.cell_coadd",
+    "Exposure": "cellcoadd.model.exposure",
+    "InputRecord": "cellcoadd.model.inputs",
+    "InputStatus": "cellcoadd.model.inputs",
+    "MaskBits": "cellcoadd.model.maskbits",
+    "FORMAT_VERSION": "cellcoadd.model.patch_coadd",
+    "PatchCoadd": "cellcoadd.model.patch_coadd",
+    "PatchMetadata": "cellcoadd.model.patch_coadd",
+    "convert": "cellcoadd.io",
+    "open": "cellcoadd.io",
+    "read": "cellcoadd.io",
+    "read_cell": "cellcoadd.io",
+    "read_exposure": "cellcoadd.io",
+    "write": "cellcoadd.io",
+    "write_exposure": "cellcoadd.io",
+    "build_cell": "cellcoadd.builder",
+    "build_patch": "cellcoadd.builder",
+    "measure_metacal": "cellcoadd.shear",
+    "to_ngmix": "cellcoadd.shear",
+    "to_observation": "cellcoadd.shear",
+    "ValidationSettings": "cellcoadd.pipelines",
+    "validate_shear": "cellcoadd.pipelines",
+    "plot_patch_layout": "cellcoadd.plots",
+}
 
 __all__ = [
-    "FORMAT_VERSION",
     "Box",
     "BuildConfig",
     "Cell",
@@ -56,7 +66,9 @@ __all__ = [
     "EmptyCellError",
     "Exposure",
     "ExposureError",
+    "FORMAT_VERSION",
     "InputRecord",
+    "InputStatus",
     "MaskBits",
     "Patch",
     "PatchCoadd",
@@ -84,3 +96,56 @@ __all__ = [
     "write",
     "write_exposure",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cellcoadd' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
+
+
+if TYPE_CHECKING:  # the same names, for type checkers and IDEs
+    from cellcoadd.builder import build_cell, build_patch
+    from cellcoadd.errors import (
+        CellBuildError,
+        CellCoaddError,
+        CellCoaddFormatError,
+        EmptyCellError,
+        ExposureError,
+    )
+    from cellcoadd.geometry import (
+        Box,
+        Cell,
+        Patch,
+        SkyMap,
+        SkyMapConfig,
+        Tract,
+        flag_unique,
+        trim_to_cell,
+        trim_to_patch,
+    )
+    from cellcoadd.io import (
+        convert,
+        open,
+        read,
+        read_cell,
+        read_exposure,
+        write,
+        write_exposure,
+    )
+    from cellcoadd.model.build_config import BuildConfig
+    from cellcoadd.model.cell_coadd import CellCoadd
+    from cellcoadd.model.exposure import Exposure
+    from cellcoadd.model.inputs import InputRecord, InputStatus
+    from cellcoadd.model.maskbits import MaskBits
+    from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
+    from cellcoadd.pipelines import ValidationSettings, validate_shear
+    from cellcoadd.plots import plot_patch_layout
+    from cellcoadd.shear import measure_metacal, to_ngmix, to_observation

@@ -22,7 +22,7 @@ from coadd_factory import (
     tiny_skymap,
 )
 
-import cellcoadd.build.patch as patch_module
+import cellcoadd.builder.patch as patch_module
 from cellcoadd import BuildConfig, CellBuildError, Exposure, build_patch
 from cellcoadd.cli.main import main as cli_main
 from cellcoadd.io import api

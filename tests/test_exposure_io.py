@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS, Sip
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.exposure_io import read_exposure, write_exposure
-from cellcoadd.io.psf_codec import GridPsf, PsfCodecError, VaryingPsf, decode_psf, encode_psf
+from cellcoadd.io.psf_codec import PsfCodecError, decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf_profiles import GridPsf, VaryingPsf
 
 SHAPE = (60, 80)
 

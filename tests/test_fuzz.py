@@ -26,15 +26,15 @@ from exposure_factory import make_wcs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.io import api, hdf5_format
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.exposure_io import read_exposure, write_exposure
 from cellcoadd.io.fits_checksums import DATACRC
 from cellcoadd.io.fits_format import extname
-from cellcoadd.io.psf_codec import VaryingPsf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf_profiles import VaryingPsf
 
 #: Longest a read of these small files may take before it counts as a hang, seconds.
 DEADLINE = 30.0

@@ -24,9 +24,9 @@ from hypothesis import strategies as st
 from kill_writer import kill_mid_write
 
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.io import api, common, fits_format, hdf5_format
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 

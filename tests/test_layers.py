@@ -8,15 +8,16 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "cellcoadd"
 LEVEL = {
     "_version": 0,
+    "errors": 0,
     "geometry": 0,
     "model": 1,
     "io": 2,
-    "build": 2,
+    "builder": 2,
     "sim": 3,
     "analysis": 4,
     "shear": 5,
     "plots": 6,
-    "demo": 7,
+    "pipelines": 7,
     "cli": 8,
     "__main__": 9,
 }
@@ -50,3 +51,44 @@ def test_imports_point_downward(path):
         if layer == own:
             continue
         assert LEVEL[layer] < LEVEL[own], f"{path}:{line}: {own} imports {layer} (upward)"
+
+
+KERNELS = sorted((PACKAGE / "builder" / "kernels").glob("*.py"))
+SHEAR = sorted((PACKAGE / "shear").glob("*.py"))
+
+
+def _imported_modules(path: Path):
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module, node.lineno
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno
+
+
+@pytest.mark.parametrize("path", KERNELS, ids=[p.name for p in KERNELS])
+def test_kernels_do_no_io(path):
+    """Numerical kernels: numpy, numba, llvmlite and each other; no files, no astropy."""
+    allowed = ("numpy", "numba", "llvmlite", "math", "collections", "__future__")
+    for module, line in _imported_modules(path):
+        top = module.split(".")[0]
+        inside = module.startswith("cellcoadd.builder.kernels") or module in (
+            "cellcoadd.geometry.box",
+        )
+        assert top in allowed or inside, f"{path}:{line}: a kernel imports {module}"
+
+
+@pytest.mark.parametrize("path", SHEAR, ids=[p.name for p in SHEAR])
+def test_shear_sees_only_model_and_geometry(path):
+    for layer, line in _imported_layers(path):
+        assert layer in ("errors", "geometry", "model", "shear"), f"{path}:{line}: {layer}"
+
+
+def test_no_private_names_cross_modules():
+    """A module imports no ``_private`` name of another module."""
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("cellcoadd"):
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                private = [n for n in private if not n.startswith("__")]
+                assert not private, f"{path}:{node.lineno}: imports {private} from {node.module}"

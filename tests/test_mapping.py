@@ -1,4 +1,4 @@
-"""Tests of the coadd -> exposure pixel mapping (cellcoadd.build.mapping)."""
+"""Tests of the coadd -> exposure pixel mapping (cellcoadd.builder.mapping)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS, Sip
 
-from cellcoadd.build.mapping import (
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
+from cellcoadd.builder.mapping import (
     MappingError,
     PixelMapping,
     footprint_box,
     map_box,
     map_points,
 )
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH, warp_planes
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import pixel_area
 

@@ -9,12 +9,12 @@ import pytest
 from astropy.wcs import WCS, Sip
 from pydantic import ValidationError
 
+from cellcoadd.errors import CellCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import (
     CellCoadd,
-    CellCoaddError,
     wcs_from_record,
     wcs_to_record,
 )

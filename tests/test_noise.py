@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy import special, stats
 
-from cellcoadd.build.accumulate import accumulate_warped
-from cellcoadd.build.input_planes import input_planes
-from cellcoadd.build.noise import ndtri, noise_key, philox4x32, standard_normal_field
+from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.input_planes import input_planes
+from cellcoadd.builder.kernels.noise import ndtri, noise_key, philox4x32, standard_normal_field
 from cellcoadd.geometry.box import Box
 
 # Random123 tests/kat_vectors, "philox4x32 10": counter (4 words), key (2), result (4)

@@ -17,7 +17,7 @@ from astropy.wcs import WCS
 from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
 from exposure_factory import make_exposure, make_wcs
 
-import cellcoadd.build.select as select_module
+import cellcoadd.builder.select as select_module
 from cellcoadd import Box, Exposure, ExposureError, build_patch
 from cellcoadd.io.exposure_io import write_exposure
 

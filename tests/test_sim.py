@@ -16,7 +16,7 @@ from cellcoadd.cli.simulate import simulate
 from cellcoadd.geometry import SkyMap
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.io.exposure_io import read_exposure
-from cellcoadd.io.psf_codec import VaryingPsf
+from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.sim import (
     DEMO_PATCH,
     FieldConfig,

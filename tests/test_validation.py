@@ -12,15 +12,15 @@ from click.testing import CliRunner
 
 from cellcoadd.cli.shear import parse_snr
 from cellcoadd.cli.shear import validate_shear as validate_shear_command
-from cellcoadd.shear import (
+from cellcoadd.pipelines import (
     PAPER_TABLE1,
     ValidationSettings,
     format_bias_table,
     largest_cell_inner,
     validate_shear,
 )
-from cellcoadd.shear.stamp_pairs import measure_pair, stamp_cell
-from cellcoadd.shear.validation import RESULT_KEYS, PairCatalogue, measure_pairs
+from cellcoadd.pipelines.shear_validation import RESULT_KEYS, PairCatalogue, measure_pairs
+from cellcoadd.pipelines.stamp_pairs import measure_pair, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
 # Nearly noise free: the metacal error per object is ~1.5e-3 / (S/N / 1e4) in m, so a

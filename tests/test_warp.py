@@ -1,4 +1,4 @@
-"""Tests of the normalised Lanczos-3 resampling kernel (cellcoadd.build.warp)."""
+"""Tests of the normalised Lanczos-3 resampling kernel (cellcoadd.builder.kernels.warp)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellcoadd.build.accumulate import accumulate_warped
-from cellcoadd.build.mask_warp import warp_mask_or
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH, warp_planes
+from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.mask_warp import warp_mask_or
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
 
 
 def reference_warp(plane: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.ndarray:

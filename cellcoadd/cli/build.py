@@ -50,7 +50,7 @@ def build(
     """
     from tqdm.auto import tqdm
 
-    from cellcoadd.build import build_patch
+    from cellcoadd.builder import build_patch
     from cellcoadd.io.api import write
     from cellcoadd.io.exposure_io import read_exposure
     from cellcoadd.model.build_config import BuildConfig

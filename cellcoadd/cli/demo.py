@@ -39,7 +39,7 @@ def demo(out_dir: str, visits: int, seed: int, workers: int, quiet: bool) -> Non
       cellcoadd demo
       cellcoadd demo --out /tmp/demo --visits 20 --seed 7
     """
-    from cellcoadd.demo import run_demo
+    from cellcoadd.pipelines.demo import run_demo
 
     result = run_demo(out_dir, n_visits=visits, seed=seed, workers=workers, progress=not quiet)
     click.echo(result.report)

@@ -98,8 +98,8 @@ def validate_shear(
       cellcoadd validate-shear --n-objects 2000 --snr 10,50 --workers 2
       cellcoadd validate-shear --n-objects 20 --snr 1000 --json --quiet
     """
-    from cellcoadd.shear.validation import RESULT_KEYS, format_bias_table
-    from cellcoadd.shear.validation import validate_shear as run_validation
+    from cellcoadd.pipelines.shear_validation import RESULT_KEYS, format_bias_table
+    from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
 
     result = run_validation(
         mode=mode,  # type: ignore[arg-type]

@@ -10,8 +10,8 @@ from typing import Any
 
 import click
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import api
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.inputs import REJECTION_REASONS
 from cellcoadd.model.schemas import write_schemas
 

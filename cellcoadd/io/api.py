@@ -13,7 +13,7 @@ Files are reproducible: the same patch gives byte-identical files (CFITSIO's tim
 checksum comments are replaced by fixed ones; HDF5 objects carry no timestamps).
 
 Every read verifies checksums by default and raises
-:class:`~cellcoadd.io.errors.CellCoaddFormatError` for anything that is not an intact
+:class:`~cellcoadd.errors.CellCoaddFormatError` for anything that is not an intact
 cellcoadd file of a supported major version.
 """
 

@@ -17,8 +17,8 @@ import numpy as np
 from astropy.table import Table
 from pydantic import BaseModel
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.cell_coadd import CellCoadd, wcs_from_record, wcs_to_record
 from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchMetadata, parse_format_version

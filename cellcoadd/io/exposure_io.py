@@ -44,9 +44,9 @@ from typing import Any, BinaryIO
 import fitsio
 import numpy as np
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.io.common import check_free_space, clear_cfitsio_messages, disk_full_error
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.exposure_psf import psf_payload, read_psf
 from cellcoadd.io.fits_checksums import (
     DATACRC_PLACEHOLDER,

@@ -6,12 +6,12 @@ PSFKIND   stored as                                               read back as
 ========  ======================================================  =======================
 PROFILE   a GSObject of the whitelist: exact JSON description     the same GSObject
           (:mod:`cellcoadd.io.psf_codec`), no HDU
-VARYING   a :class:`~cellcoadd.io.psf_codec.VaryingPsf`: exact    the same VaryingPsf
+VARYING   a :class:`~cellcoadd.model.psf_profiles.VaryingPsf`: exact    the same VaryingPsf
           JSON description, no HDU
 SAMPLED   any other GSObject: one oversampled pre-pixel stamp     an InterpolatedImage
 GRID      any other callable: float64 cube (n_y_nodes,            a
           n_x_nodes, n, n) of oversampled pre-pixel stamps on a   :class:`~cellcoadd.io.
-          :data:`PSF_GRID_NODES` x :data:`PSF_GRID_NODES` grid    psf_codec.GridPsf`
+          :data:`PSF_GRID_NODES` x :data:`PSF_GRID_NODES` grid    psf_profiles.GridPsf`
 IMAGE     a ``galsim.Image``: the stamp (dtype as given)          a bit-identical Image
 ========  ======================================================  =======================
 """
@@ -23,10 +23,11 @@ from typing import Any
 import galsim
 import numpy as np
 
-from cellcoadd.io.errors import CellCoaddFormatError
-from cellcoadd.io.psf_codec import GridPsf, VaryingPsf, can_encode, decode_psf, encode_psf
+from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.io.psf_codec import can_encode, decode_psf, encode_psf
 from cellcoadd.io.wcs_header import as_float
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.psf_profiles import GridPsf, VaryingPsf
 
 #: Nodes a side of the grid a PSF callable is sampled on.
 PSF_GRID_NODES = 5

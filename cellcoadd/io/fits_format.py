@@ -25,8 +25,8 @@ import fitsio
 import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import common
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER, verify_hdu
 from cellcoadd.model.cell_coadd import CellCoadd, wcs_to_record
 from cellcoadd.model.inputs import InputRecord

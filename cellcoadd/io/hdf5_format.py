@@ -20,8 +20,8 @@ from typing import Any
 import h5py
 import numpy as np
 
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import common
-from cellcoadd.io.errors import CellCoaddFormatError
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd

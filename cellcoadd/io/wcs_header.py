@@ -19,7 +19,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS, Sip
 
-from cellcoadd.io.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError
 
 #: Relative agreement required between a header float (15 digits) and its exact value.
 HEADER_RTOL = 1e-13

@@ -29,16 +29,13 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS, FITSFixedWarning, Sip
 
+from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
 
 #: Tolerance on ``|sum(psf) - 1|`` for a non-empty cell.
 PSF_SUM_TOLERANCE = 1e-6
-
-
-class CellCoaddError(ValueError):
-    """A cell coadd is malformed (raised at construction, naming the field at fault)."""
 
 
 class CellPlanes(NamedTuple):
@@ -78,7 +75,7 @@ class CellCoadd:
 
     Raises
     ------
-    CellCoaddError
+    InvalidCoaddError
         When a field has the wrong type, dtype, shape or is inconsistent with another.
     """
 
@@ -101,11 +98,11 @@ class CellCoadd:
         self.tract = _as_int("tract", tract)
         self.index = _as_index(index)
         if not isinstance(outer_bbox, Box) or not isinstance(inner_bbox, Box):
-            raise CellCoaddError(f"cell {self.index}: inner_bbox and outer_bbox must be Box")
+            raise InvalidCoaddError(f"cell {self.index}: inner_bbox and outer_bbox must be Box")
         if outer_bbox.is_empty or inner_bbox.is_empty:
-            raise CellCoaddError(f"cell {self.index}: boxes must not be empty")
+            raise InvalidCoaddError(f"cell {self.index}: boxes must not be empty")
         if not outer_bbox.contains_box(inner_bbox):
-            raise CellCoaddError(
+            raise InvalidCoaddError(
                 f"cell {self.index}: inner_bbox {inner_bbox} is not inside outer_bbox {outer_bbox}"
             )
         self.inner_bbox = inner_bbox
@@ -118,7 +115,7 @@ class CellCoadd:
         self.mask = _mask_plane(name, mask, shape)
         noise = _float_array(name, "noise", noise, np.float32)
         if noise.ndim != 3 or noise.shape[1:] != shape:
-            raise CellCoaddError(
+            raise InvalidCoaddError(
                 f"{name}: noise must have shape (K, {shape[0]}, {shape[1]}), got {noise.shape}"
             )
         self.noise = noise
@@ -128,7 +125,7 @@ class CellCoadd:
             or self.psf.shape[0] != self.psf.shape[1]
             or self.psf.shape[0] % 2 == 0
         ):
-            raise CellCoaddError(
+            raise InvalidCoaddError(
                 f"{name}: psf must be an odd square 2-D stamp, got shape {self.psf.shape}"
             )
         try:
@@ -137,18 +134,20 @@ class CellCoadd:
                 for item in inputs
             ]
         except ValueError as err:
-            raise CellCoaddError(f"{name}: invalid input record: {err}") from err
+            raise InvalidCoaddError(f"{name}: invalid input record: {err}") from err
         keys = [record.key for record in self.inputs]
         if len(set(keys)) != len(keys):
-            raise CellCoaddError(f"{name}: inputs list a (visit, detector) more than once")
+            raise InvalidCoaddError(f"{name}: inputs list a (visit, detector) more than once")
         self.wcs = _check_wcs(name, wcs)
         if self.is_empty:
             if not np.isnan(self.image).all():
-                raise CellCoaddError(f"{name}: an empty cell (no used input) must have a NaN image")
+                raise InvalidCoaddError(
+                    f"{name}: an empty cell (no used input) must have a NaN image"
+                )
         else:
             total = float(np.sum(self.psf))
             if not abs(total - 1.0) <= PSF_SUM_TOLERANCE:
-                raise CellCoaddError(f"{name}: psf must sum to 1 (got {total!r})")
+                raise InvalidCoaddError(f"{name}: psf must sum to 1 (got {total!r})")
 
     @classmethod
     def empty(
@@ -340,7 +339,7 @@ def wcs_from_record(record: dict[str, Any]) -> WCS:
 
 def _as_int(field: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise CellCoaddError(f"{field} must be an integer, got {value!r}")
+        raise InvalidCoaddError(f"{field} must be an integer, got {value!r}")
     return int(value)
 
 
@@ -348,14 +347,14 @@ def _as_index(index: Sequence[int]) -> tuple[int, int]:
     try:
         cx, cy = index
     except (TypeError, ValueError):
-        raise CellCoaddError(f"index must be a pair (cx, cy), got {index!r}") from None
+        raise InvalidCoaddError(f"index must be a pair (cx, cy), got {index!r}") from None
     return (_as_int("index[0]", cx), _as_int("index[1]", cy))
 
 
 def _float_array(cell: str, field: str, value: Any, dtype: type[np.floating]) -> np.ndarray:
     array = np.asarray(value)
     if array.dtype.kind != "f":
-        raise CellCoaddError(f"{cell}: {field} must be a float array, got dtype {array.dtype}")
+        raise InvalidCoaddError(f"{cell}: {field} must be a float array, got dtype {array.dtype}")
     # Same-kind conversion; a native float32 input is kept as is (bits untouched).
     return np.asarray(array, dtype=dtype)
 
@@ -365,7 +364,7 @@ def _float_plane(
 ) -> np.ndarray:
     array = _float_array(cell, field, value, dtype)
     if array.shape != shape:
-        raise CellCoaddError(
+        raise InvalidCoaddError(
             f"{cell}: {field} must have the outer-box shape {shape}, got {array.shape}"
         )
     return array
@@ -374,19 +373,19 @@ def _float_plane(
 def _mask_plane(cell: str, value: Any, shape: tuple[int, int]) -> np.ndarray:
     array = np.asarray(value)
     if array.dtype.kind not in "iu":
-        raise CellCoaddError(f"{cell}: mask must be an integer array, got dtype {array.dtype}")
+        raise InvalidCoaddError(f"{cell}: mask must be an integer array, got dtype {array.dtype}")
     if array.shape != shape:
-        raise CellCoaddError(
+        raise InvalidCoaddError(
             f"{cell}: mask must have the outer-box shape {shape}, got {array.shape}"
         )
     if array.dtype != np.int32 and array.size:
         info = np.iinfo(np.int32)
         if array.min() < info.min or array.max() > info.max:
-            raise CellCoaddError(f"{cell}: mask values do not fit in int32")
+            raise InvalidCoaddError(f"{cell}: mask values do not fit in int32")
     return np.asarray(array, dtype=np.int32)
 
 
 def _check_wcs(cell: str, wcs: Any) -> WCS:
     if not isinstance(wcs, WCS) or wcs.naxis != 2 or not wcs.has_celestial:
-        raise CellCoaddError(f"{cell}: wcs must be a 2-axis celestial astropy.wcs.WCS")
+        raise InvalidCoaddError(f"{cell}: wcs must be a 2-axis celestial astropy.wcs.WCS")
     return wcs

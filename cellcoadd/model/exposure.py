@@ -24,16 +24,13 @@ import galsim
 import numpy as np
 from astropy.wcs import WCS
 
+from cellcoadd.errors import ExposureError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, local_jacobian
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 
 PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
-
-
-class ExposureError(ValueError):
-    """An exposure is malformed (raised at construction with the visit and detector)."""
 
 
 @dataclass(eq=False)

@@ -12,12 +12,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd._version import __version__
+from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import NearestCenterRegion
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.model.build_config import BuildConfig
-from cellcoadd.model.cell_coadd import CellCoadd, CellCoaddError
+from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 
@@ -206,36 +207,40 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         for key, cell in cells.items():
             key = (int(key[0]), int(key[1]))
             if not isinstance(cell, CellCoadd):
-                raise CellCoaddError(f"cell {key}: expected a CellCoadd, got {type(cell).__name__}")
+                raise InvalidCoaddError(
+                    f"cell {key}: expected a CellCoadd, got {type(cell).__name__}"
+                )
             if cell.index != key:
-                raise CellCoaddError(f"cell stored under {key} has index {cell.index}")
+                raise InvalidCoaddError(f"cell stored under {key} has index {cell.index}")
             if key not in allowed:
-                raise CellCoaddError(
+                raise InvalidCoaddError(
                     f"cell {key} is not an inner or border cell of patch {metadata.patch}"
                 )
             if cell.tract != metadata.tract:
-                raise CellCoaddError(f"cell {key} is in tract {cell.tract}, not {metadata.tract}")
+                raise InvalidCoaddError(
+                    f"cell {key} is in tract {cell.tract}, not {metadata.tract}"
+                )
             inner, outer = metadata.cell_boxes(key)
             if (cell.inner_bbox, cell.outer_bbox) != (inner, outer):
-                raise CellCoaddError(
+                raise InvalidCoaddError(
                     f"cell {key} has boxes inner={cell.inner_bbox}, outer={cell.outer_bbox}; "
                     f"the sky map implies inner={inner}, outer={outer}"
                 )
             if cell.n_noise != metadata.n_noise:
-                raise CellCoaddError(
+                raise InvalidCoaddError(
                     f"cell {key} has {cell.n_noise} noise realizations, "
                     f"the build config says {metadata.n_noise}"
                 )
             if cell.psf.shape != (metadata.psf_size, metadata.psf_size):
-                raise CellCoaddError(
+                raise InvalidCoaddError(
                     f"cell {key} has a {cell.psf.shape} PSF stamp, expected side "
                     f"{metadata.psf_size}"
                 )
             unknown = metadata.mask_bits.unknown_bits(cell.mask)
             if unknown:
-                raise CellCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
+                raise InvalidCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
             if cell.is_empty and not np.all(cell.mask & no_data):
-                raise CellCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
+                raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
             checked[key] = cell
         self.cells: dict[tuple[int, int], CellCoadd] = {k: checked[k] for k in sorted(checked)}
 

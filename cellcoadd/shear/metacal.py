@@ -47,6 +47,7 @@ from typing import Literal
 import galsim
 import numpy as np
 
+from cellcoadd.errors import MetacalError
 from cellcoadd.shear.shapes import MetacalFlags, empty_record, measure_shape, psf_T
 
 __all__ = [
@@ -78,10 +79,6 @@ INTERPOLANT = "lanczos15"
 #: The "gauss" reconvolution PSF reaches this fraction of its peak in Fourier space at the
 #: smallest wavenumber where the PSF (with pixel) does, before dilation.
 KSPACE_THRESHOLD = 1.0e-2
-
-
-class MetacalError(ValueError):
-    """The arguments of a metacal call are malformed (wrong shapes, singular jacobian...)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import EmptyCellError
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.model.cell_coadd import CellCoadd
 
@@ -47,10 +48,6 @@ _NGMIX_MISSING = (
     "'conda install -c conda-forge ngmix' (or 'pip install ngmix'), or use "
     "cellcoadd.shear.to_observation, which returns plain numpy arrays"
 )
-
-
-class EmptyCellError(ValueError):
-    """A cell with no used input has no pixels to measure."""
 
 
 def _noise_variance(cell: CellCoadd) -> float:

@@ -30,9 +30,9 @@ from tqdm import tqdm
 from cellcoadd.geometry import Box, SkyMap, SkyMapConfig, Tract
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.io.exposure_io import write_exposure
-from cellcoadd.io.psf_codec import VaryingPsf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.sim.config import SimConfig
 from cellcoadd.sim.focal_plane import Detector, FocalPlane, dither_offsets, offset_position
 from cellcoadd.sim.galaxies import (

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
-from cellcoadd.io.psf_codec import VaryingPsf
+from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.sim.config import PsfConfig
 
 

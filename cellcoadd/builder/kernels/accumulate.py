@@ -3,7 +3,7 @@
 The builder keeps an exposure's planes interleaved (all planes of a pixel together), so
 each tap reads them in one go and they fill the lanes of SIMD vectors (up to eight planes
 per pass over a 6x6 block: vectors of 4, 2 and 1 lanes); the kernel weights and the
-order of the sums are those of :mod:`cellcoadd.build.warp`, and the result equals
+order of the sums are those of :mod:`cellcoadd.builder.kernels.warp`, and the result equals
 ``warp_planes`` bit for bit. The footprints of pixels a few steps ahead are prefetched,
 as a rotated footprint walks through memory in a pattern the hardware does not predict.
 """
@@ -18,24 +18,24 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
-from cellcoadd.build.lanczos import (
-    _N_TAPS,
-    _TABLE_ROWS,
-    _WEIGHT_Y,
-    _corner,
-    _exact_source,
-    _row_table,
+from cellcoadd.builder.kernels.lanczos import (
+    N_TAPS,
+    TABLE_ROWS,
+    WEIGHT_Y,
+    exact_source_index,
+    fill_row_table,
+    footprint_corner,
 )
-from cellcoadd.build.warp import (
-    _I32,
-    _I64,
-    _block_sum_adjacent,
-    _check_positions,
-    _column_sums,
-    _is_flat,
-    _splat,
-    _table_weights,
-    _tree_sum,
+from cellcoadd.builder.kernels.warp import (
+    LLVM_I32,
+    LLVM_I64,
+    block_sum_adjacent,
+    check_positions,
+    column_sums,
+    is_flat_array,
+    splat,
+    table_weights,
+    tree_sum,
 )
 
 
@@ -44,13 +44,13 @@ def _make_block_sums(width: int) -> Callable:
 
     The 6x6 weighted sums of ``width`` planes stored next to each other (interleaved
     layout): tap ``(a, b)`` of plane ``p`` is ``flat[corner + a row_stride + b tap_stride
-    + p]``; weights as for :func:`_block_sum_adjacent`. The planes are split into vectors
+    + p]``; weights as for :func:`block_sum_adjacent`. The planes are split into vectors
     of 4, 2 and 1 lanes that share one pass over the taps.
     """
     pieces = [4] * (width // 4) + [2] * (width % 4 // 2) + [1] * (width % 2)
 
     def typer(typingctx, flat, corner, row_stride, tap_stride, table, col):
-        if not _is_flat(flat):
+        if not is_flat_array(flat):
             return None
         result = types.UniTuple(types.float64, width)
         signature = result(flat, corner, row_stride, tap_stride, table, col)
@@ -58,17 +58,17 @@ def _make_block_sums(width: int) -> Callable:
         def codegen(context, builder, signature, args):
             flat, corner, row_stride, tap_stride, table, col = args
             flat_type, table_type = signature.args[0], signature.args[4]
-            weights_y = _table_weights(context, builder, table_type, table, col, _WEIGHT_Y)
-            weights_x = _table_weights(context, builder, table_type, table, col, 0)
+            weights_y = table_weights(context, builder, table_type, table, col, WEIGHT_Y)
+            weights_x = table_weights(context, builder, table_type, table, col, 0)
             lanes = []
             first = 0
             for piece in pieces:
-                splats = [_splat(builder, weight, piece) for weight in weights_y]
-                piece_corner = builder.add(corner, ir.Constant(_I64, first))
+                splats = [splat(builder, weight, piece) for weight in weights_y]
+                piece_corner = builder.add(corner, ir.Constant(LLVM_I64, first))
                 xterms = []
-                for b in range(_N_TAPS):
-                    offset = builder.mul(tap_stride, ir.Constant(_I64, b))
-                    sums = _column_sums(
+                for b in range(N_TAPS):
+                    offset = builder.mul(tap_stride, ir.Constant(LLVM_I64, b))
+                    sums = column_sums(
                         context,
                         builder,
                         flat_type,
@@ -78,10 +78,10 @@ def _make_block_sums(width: int) -> Callable:
                         splats,
                         piece,
                     )
-                    xterms.append(builder.fmul(_splat(builder, weights_x[b], piece), sums))
-                total = _tree_sum(builder, xterms)
+                    xterms.append(builder.fmul(splat(builder, weights_x[b], piece), sums))
+                total = tree_sum(builder, xterms)
                 lanes += [
-                    builder.extract_element(total, ir.Constant(_I32, k)) for k in range(piece)
+                    builder.extract_element(total, ir.Constant(LLVM_I32, k)) for k in range(piece)
                 ]
                 first += piece
             return context.make_tuple(builder, result, lanes)
@@ -102,11 +102,11 @@ def _prefetch(typingctx, flat, index):
         prefetch = builder.module.declare_intrinsic(
             "llvm.prefetch",
             [byte_pointer],
-            fnty=ir.FunctionType(ir.VoidType(), [byte_pointer, _I32, _I32, _I32]),
+            fnty=ir.FunctionType(ir.VoidType(), [byte_pointer, LLVM_I32, LLVM_I32, LLVM_I32]),
         )
         pointer = builder.bitcast(builder.gep(data, [args[1]], inbounds=True), byte_pointer)
         # read, keep in all cache levels, data cache
-        flags = [ir.Constant(_I32, value) for value in (0, 3, 1)]
+        flags = [ir.Constant(LLVM_I32, value) for value in (0, 3, 1)]
         builder.call(prefetch, [pointer, *flags])
         return context.get_dummy_value()
 
@@ -131,10 +131,10 @@ def _prefetch_footprint(
     span: int,
 ) -> None:
     """Prefetch the 6x6 footprint of output pixel ``col``: six rows of ``span`` elements
-    from its first tap on (see :func:`cellcoadd.build.lanczos._corner`)."""
-    start = _corner(table, col, row_stride, tap_stride)
+    from its first tap on (see :func:`cellcoadd.builder.kernels.lanczos.footprint_corner`)."""
+    start = footprint_corner(table, col, row_stride, tap_stride)
     last = np.uint64(span - 1)
-    for _ in range(_N_TAPS):
+    for _ in range(N_TAPS):
         for offset in range(0, span, _LINE_ELEMENTS):
             _prefetch(flat, start + np.uint64(offset))
         _prefetch(flat, start + last)
@@ -191,11 +191,11 @@ def _accumulate_interleaved(
     n_cols = x_src.shape[1]
     tap_stride = np.uint64(n_planes)
     row_stride = np.uint64(nx_in) * tap_stride
-    table = np.empty((_TABLE_ROWS, n_cols))
+    table = np.empty((TABLE_ROWS, n_cols))
     factors = np.empty((n_planes, n_cols))
-    span = _N_TAPS * n_planes  # elements in one row of a footprint
+    span = N_TAPS * n_planes  # elements in one row of a footprint
     for row in range(x_src.shape[0]):
-        _row_table(x_src, y_src, row, table)
+        fill_row_table(x_src, y_src, row, table)
         for p in range(n_planes):
             which = plane_scales[p]
             weight = plane_weights[p]
@@ -205,18 +205,18 @@ def _accumulate_interleaved(
             ahead = col + _PREFETCH_AHEAD
             if col % _PREFETCH_EVERY == 0 and ahead < n_cols:
                 _prefetch_footprint(flat_pixels, table, ahead, row_stride, tap_stride, span)
-            source = _exact_source(table, col, row_stride, tap_stride)
+            source = exact_source_index(table, col, row_stride, tap_stride)
             if source >= 0:
                 # Integral position: copy, as warp_planes does.
                 for p in range(n_planes):
                     value = flat_pixels[np.uint64(source) + np.uint64(p)]
                     out[p, row, col] += factors[p, col] * value
                 continue
-            corner = _corner(table, col, row_stride, tap_stride)
+            corner = footprint_corner(table, col, row_stride, tap_stride)
             args = (flat_pixels, corner, row_stride, tap_stride, table, col)
             if n_planes == 1:
                 # A lone plane: its six taps along x are adjacent.
-                total = _block_sum_adjacent(flat_pixels, corner, row_stride, table, col)
+                total = block_sum_adjacent(flat_pixels, corner, row_stride, table, col)
                 out[0, row, col] += factors[0, col] * total
             elif n_planes == 2:
                 _add_sums(out, row, col, factors, 0, _block_sums2(*args), 0)
@@ -283,7 +283,7 @@ def accumulate_warped(
     if pixels.ndim != 3 or pixels.dtype != np.float64:
         raise ValueError(f"pixels must be a 3-D float64 array, got {pixels.dtype} {pixels.shape}")
     n_planes = pixels.shape[2]
-    x_src, y_src = _check_positions(x_src, y_src, pixels.shape[:2])
+    x_src, y_src = check_positions(x_src, y_src, pixels.shape[:2])
     out_shape = (n_planes, *x_src.shape)
     if not isinstance(out, np.ndarray) or out.dtype != np.float64 or out.shape != out_shape:
         raise ValueError(f"out must be a float64 array of shape {out_shape}")

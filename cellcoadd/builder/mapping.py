@@ -24,7 +24,8 @@ import numpy as np
 from astropy.wcs import WCS
 from astropy.wcs.wcs import NoConvergence
 
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
+from cellcoadd.errors import MappingError
 from cellcoadd.geometry.box import Box
 
 # Inverse-SIP iterations stop at this step (exposure px): far below any tolerance used here
@@ -38,10 +39,6 @@ _DIFFERENCE_STEP = 0.5
 _UNIT_AREA_TOLERANCE = 1e-8
 _ACCEPT_FRACTION = 0.5
 _MIN_GRID_STEP = 4
-
-
-class MappingError(ValueError):
-    """Coadd pixels cannot be mapped into an exposure (off its projection, or diverging)."""
 
 
 class _Interpolated:

@@ -13,13 +13,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cellcoadd.build.accumulate import accumulate_warped
-from cellcoadd.build.input_planes import input_planes
-from cellcoadd.build.mapping import footprint_box
-from cellcoadd.build.mask_warp import warp_mask_or
-from cellcoadd.build.psf import PsfError, draw_exposure_psf, psf_moments
-from cellcoadd.build.select import Candidate, select_exposure
-from cellcoadd.build.warp import warp_planes
+from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.input_planes import input_planes
+from cellcoadd.builder.kernels.mask_warp import warp_mask_or
+from cellcoadd.builder.kernels.warp import warp_planes
+from cellcoadd.builder.mapping import footprint_box
+from cellcoadd.builder.psf import PsfError, draw_exposure_psf, psf_moments
+from cellcoadd.builder.select import Candidate, select_exposure
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -32,7 +32,7 @@ class _Sums:
     """Running weighted sums of one cell's planes (float64 for exact accumulation).
 
     One array holds them all, in the order of
-    :func:`~cellcoadd.build.input_planes.input_planes` (image, K noise realizations,
+    :func:`~cellcoadd.builder.kernels.input_planes.input_planes` (image, K noise realizations,
     variance, masked fraction), so one kernel call adds an exposure.
     """
 

@@ -17,7 +17,7 @@ import galsim
 import numpy as np
 from astropy.table import Table
 
-from cellcoadd.build import build_patch
+from cellcoadd.builder import build_patch
 from cellcoadd.geometry import flag_unique
 from cellcoadd.io import api as coadd_io
 from cellcoadd.model.build_config import BuildConfig

@@ -11,7 +11,7 @@ returns the multiplicative and additive biases
 with ``g+-`` the calibrated mean shears ``(R + R_S)^-1 <e>`` under the paper's cuts
 (S/N > 10, T/T_psf > 0.5) and jackknife errors over objects, a pair's two members
 removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
-through is described in :mod:`cellcoadd.shear.stamp_pairs`.
+through is described in :mod:`cellcoadd.pipelines.stamp_pairs`.
 
 Objects run in chunks on any ``concurrent.futures`` executor (a local process pool for
 ``workers > 1``, or a dask.distributed cluster); object ``i`` depends only on
@@ -30,17 +30,17 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from cellcoadd.build.executors import resolve_executor
-from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
-from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
-from cellcoadd.shear.shapes import SHAPE_DTYPE
-from cellcoadd.shear.stamp_pairs import (
+from cellcoadd.builder.executors import resolve_executor
+from cellcoadd.pipelines.stamp_pairs import (
     Mode,
     PairMeasurement,
     ValidationSettings,
     measure_pair,
     stamp_cell,
 )
+from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
+from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
+from cellcoadd.shear.shapes import SHAPE_DTYPE
 from cellcoadd.sim.config import SimConfig
 
 #: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1. The paper's
@@ -82,7 +82,7 @@ class PairCatalogue:
         ``+g`` and ``-g`` members, aligned with ``index`` (what
         :func:`~cellcoadd.shear.multiplicative_bias` takes).
     noise_sigma, snr, n_inputs, cpu_seconds : ndarray
-        Per object, as in :class:`~cellcoadd.shear.stamp_pairs.PairMeasurement`.
+        Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
     """
 
     index: np.ndarray
@@ -136,7 +136,7 @@ def _rows(records: list[np.ndarray]) -> np.ndarray:
 
 
 def measure_pairs(settings: ValidationSettings, indices: Sequence[int]) -> PairCatalogue:
-    """:func:`~cellcoadd.shear.stamp_pairs.measure_pair` for each index, as a catalogue
+    """:func:`~cellcoadd.pipelines.stamp_pairs.measure_pair` for each index, as a catalogue
     (one task of a parallel run)."""
     cell = stamp_cell(settings)
     return PairCatalogue.from_pairs([measure_pair(settings, index, cell) for index in indices])
@@ -253,13 +253,13 @@ def validate_shear(
     ----------
     mode : {"coadd", "single"}
         ``"coadd"``: metacal on the cell coadd of each object's epochs, built with
-        :func:`cellcoadd.build.build_cell`. ``"single"``: metacal on the first epoch alone.
+        :func:`cellcoadd.builder.build_cell`. ``"single"``: metacal on the first epoch alone.
     n_objects : int
         Number of objects (each simulated as a +g / -g pair).
     snr : float or (float, float), optional
         Fixed target S/N or a range drawn uniformly per object; the optimal S/N of the
         measured noise-free data sets the pixel noise (see
-        :mod:`cellcoadd.shear.stamp_pairs`). None: the simulation's noise level.
+        :mod:`cellcoadd.pipelines.stamp_pairs`). None: the simulation's noise level.
     seed : int
         Seed of the run.
     workers : int
@@ -279,7 +279,7 @@ def validate_shear(
     coadd_pixel_scale : float
         Coadd pixel scale, arcsec (0.2, the LSST-like default of cellcoadd; 0.27 puts
         the coadd on the exposures' nominal scale); the cell size follows
-        (:func:`~cellcoadd.shear.stamp_pairs.largest_cell_inner`).
+        (:func:`~cellcoadd.pipelines.stamp_pairs.largest_cell_inner`).
     reconvolution_psf : {"gauss", "fitgauss", "dilate"}
         Metacal reconvolution PSF.
     return_measurements : bool

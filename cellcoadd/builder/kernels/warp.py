@@ -17,9 +17,9 @@ Conventions
 * Non-finite input values propagate to every output pixel whose 6x6 footprint contains
   them; callers replace masked pixels before warping.
 
-The weights of a whole output row are computed first (:mod:`cellcoadd.build.lanczos`),
+The weights of a whole output row are computed first (:mod:`cellcoadd.builder.kernels.lanczos`),
 then applied to every plane. The 6x6 sums use SIMD vectors of up to
-four doubles (AVX2), written out explicitly (see ``_column_sums``).
+four doubles (AVX2), written out explicitly (see ``column_sums``).
 
 Two layouts: :func:`warp_planes` takes the planes one after another ``(P, ny, nx)`` (the
 six taps of a row are adjacent: one vector of 4 and one of 2 per input row);
@@ -42,14 +42,14 @@ from numba.core import cgutils, types
 from numba.core.base import BaseContext
 from numba.extending import intrinsic
 
-from cellcoadd.build.lanczos import (
-    _N_TAPS,
-    _TABLE_ROWS,
-    _WEIGHT_Y,
+from cellcoadd.builder.kernels.lanczos import (
     KERNEL_HALF_WIDTH,
-    _corner,
-    _exact_source,
-    _row_table,
+    N_TAPS,
+    TABLE_ROWS,
+    WEIGHT_Y,
+    exact_source_index,
+    fill_row_table,
+    footprint_corner,
 )
 
 # The 6x6 sums. Every plane is summed the same way whatever the layout, which makes the
@@ -65,12 +65,12 @@ from cellcoadd.build.lanczos import (
 # interleaved); lane-wise IEEE arithmetic gives the bits of the scalar formula. Every
 # vector load covers taps only: nothing outside the 6x6 footprint is read.
 
-_I32 = ir.IntType(32)
-_I64 = ir.IntType(64)
+LLVM_I32 = ir.IntType(32)
+LLVM_I64 = ir.IntType(64)
 _F64 = ir.DoubleType()
 
 
-def _is_flat(array_type: types.Type) -> bool:
+def is_flat_array(array_type: types.Type) -> bool:
     """Whether the sums can read ``array_type`` by flat index: 1-D, contiguous, floats."""
     return (
         isinstance(array_type, types.Array)
@@ -80,16 +80,16 @@ def _is_flat(array_type: types.Type) -> bool:
     )
 
 
-def _splat(builder: ir.IRBuilder, value: ir.Value, width: int) -> ir.Value:
+def splat(builder: ir.IRBuilder, value: ir.Value, width: int) -> ir.Value:
     """``<width x double>`` with every lane equal to ``value``."""
     vector = builder.insert_element(
-        ir.Constant(ir.VectorType(_F64, width), ir.Undefined), value, ir.Constant(_I32, 0)
+        ir.Constant(ir.VectorType(_F64, width), ir.Undefined), value, ir.Constant(LLVM_I32, 0)
     )
-    lanes = ir.Constant(ir.VectorType(_I32, width), [0] * width)
+    lanes = ir.Constant(ir.VectorType(LLVM_I32, width), [0] * width)
     return builder.shuffle_vector(vector, vector, lanes)
 
 
-def _tree_sum(builder: ir.IRBuilder, terms: list[ir.Value]) -> ir.Value:
+def tree_sum(builder: ir.IRBuilder, terms: list[ir.Value]) -> ir.Value:
     """``((t0 + t1) + (t2 + t3)) + (t4 + t5)`` of six LLVM values."""
     return builder.fadd(
         builder.fadd(builder.fadd(terms[0], terms[1]), builder.fadd(terms[2], terms[3])),
@@ -97,7 +97,7 @@ def _tree_sum(builder: ir.IRBuilder, terms: list[ir.Value]) -> ir.Value:
     )
 
 
-def _column_sums(
+def column_sums(
     context: BaseContext,
     builder: ir.IRBuilder,
     flat_type: types.Array,
@@ -112,8 +112,8 @@ def _column_sums(
     element = context.get_data_type(flat_type.dtype)
     loaded_type = ir.VectorType(element, width)
     terms = []
-    for a in range(_N_TAPS):
-        index = builder.add(start, builder.mul(row_stride, ir.Constant(_I64, a)))
+    for a in range(N_TAPS):
+        index = builder.add(start, builder.mul(row_stride, ir.Constant(LLVM_I64, a)))
         pointer = builder.bitcast(
             builder.gep(data, [index], inbounds=True), loaded_type.as_pointer()
         )
@@ -121,10 +121,10 @@ def _column_sums(
         if element != _F64:
             values = builder.fpext(values, ir.VectorType(_F64, width))
         terms.append(builder.fmul(weights_y[a], values))
-    return _tree_sum(builder, terms)
+    return tree_sum(builder, terms)
 
 
-def _table_weights(
+def table_weights(
     context: BaseContext,
     builder: ir.IRBuilder,
     table_type: types.Array,
@@ -137,7 +137,7 @@ def _table_weights(
     Loaded inside each sum: as memory operands of broadcasts they cost no registers.
     """
     array = context.make_array(table_type)(context, builder, table)
-    rows = [ir.Constant(_I64, first_row + j) for j in range(_N_TAPS)]
+    rows = [ir.Constant(LLVM_I64, first_row + j) for j in range(N_TAPS)]
     return [
         builder.load(
             cgutils.get_item_pointer(context, builder, table_type, array, [row, col]), typ=_F64
@@ -147,29 +147,31 @@ def _table_weights(
 
 
 @intrinsic
-def _block_sum_adjacent(typingctx, flat, corner, row_stride, table, col):
+def block_sum_adjacent(typingctx, flat, corner, row_stride, table, col):
     """6x6 weighted sum of one plane whose taps along x are adjacent in ``flat``.
 
     ``flat[corner]`` is the first tap; rows of taps are ``row_stride`` apart; the weights
     are those of output pixel ``col`` in ``table`` (see
-    :func:`cellcoadd.build.lanczos._row_table`).
+    :func:`cellcoadd.builder.kernels.lanczos.fill_row_table`).
     """
-    if not _is_flat(flat):
+    if not is_flat_array(flat):
         return None
     signature = types.float64(flat, corner, row_stride, table, col)
 
     def codegen(context, builder, signature, args):
         flat, corner, row_stride, table, col = args
         flat_type, table_type = signature.args[0], signature.args[3]
-        weights_y = _table_weights(context, builder, table_type, table, col, _WEIGHT_Y)
-        weights_x = _table_weights(context, builder, table_type, table, col, 0)
+        weights_y = table_weights(context, builder, table_type, table, col, WEIGHT_Y)
+        weights_x = table_weights(context, builder, table_type, table, col, 0)
         columns = []
         for first, width in ((0, 4), (4, 2)):
-            start = builder.add(corner, ir.Constant(_I64, first))
-            splats = [_splat(builder, weight, width) for weight in weights_y]
-            sums = _column_sums(context, builder, flat_type, flat, start, row_stride, splats, width)
-            columns += [builder.extract_element(sums, ir.Constant(_I32, k)) for k in range(width)]
-        return _tree_sum(builder, [builder.fmul(weights_x[b], columns[b]) for b in range(_N_TAPS)])
+            start = builder.add(corner, ir.Constant(LLVM_I64, first))
+            splats = [splat(builder, weight, width) for weight in weights_y]
+            sums = column_sums(context, builder, flat_type, flat, start, row_stride, splats, width)
+            columns += [
+                builder.extract_element(sums, ir.Constant(LLVM_I32, k)) for k in range(width)
+            ]
+        return tree_sum(builder, [builder.fmul(weights_x[b], columns[b]) for b in range(N_TAPS)])
 
     return signature, codegen
 
@@ -191,27 +193,27 @@ def _warp_row(
 
     ``flat_planes`` is the C-ordered ``(P, ny_in, nx_in)`` stack raveled; unsigned flat
     indices spare numba the negative-index wrap-around test on every tap. ``table`` is
-    scratch space of shape ``(_TABLE_ROWS, nx_out)``.
+    scratch space of shape ``(TABLE_ROWS, nx_out)``.
     """
     n_planes = out.shape[0]
     ny_in, nx_in = plane_shape
     row_stride = np.uint64(nx_in)
     plane_stride = np.uint64(ny_in * nx_in)
     one = np.uint64(1)
-    _row_table(x_src, y_src, row, table)
+    fill_row_table(x_src, y_src, row, table)
     for col in range(x_src.shape[1]):
         factor = weight * scale[row, col] if use_scale else weight
-        source = _exact_source(table, col, row_stride, one)
+        source = exact_source_index(table, col, row_stride, one)
         if source >= 0:
             # Integral position: copy (bit for bit, and immune to non-finite neighbours).
             for p in range(n_planes):
                 value = flat_planes[np.uint64(p) * plane_stride + np.uint64(source)]
                 out[p, row, col] += factor * value
             continue
-        corner = _corner(table, col, row_stride, one)
+        corner = footprint_corner(table, col, row_stride, one)
         for p in range(n_planes):
             start = np.uint64(p) * plane_stride + corner
-            total = _block_sum_adjacent(flat_planes, start, row_stride, table, col)
+            total = block_sum_adjacent(flat_planes, start, row_stride, table, col)
             out[p, row, col] += factor * total
 
 
@@ -226,7 +228,7 @@ def _warp_serial(
     scale: np.ndarray,
     use_scale: bool,
 ) -> None:
-    table = np.empty((_TABLE_ROWS, x_src.shape[1]))
+    table = np.empty((TABLE_ROWS, x_src.shape[1]))
     for row in range(x_src.shape[0]):
         _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
 
@@ -244,22 +246,22 @@ def _warp_parallel(
 ) -> None:
     # Rows are independent, so results do not depend on the number of threads.
     for row in numba.prange(x_src.shape[0]):
-        table = np.empty((_TABLE_ROWS, x_src.shape[1]))
+        table = np.empty((TABLE_ROWS, x_src.shape[1]))
         _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
 
 
-def _check_positions(
+def check_positions(
     x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate the output->input positions; return them as C-contiguous float64 arrays."""
-    x_src, y_src, _ = _checked_positions_and_taps(x_src, y_src, input_shape)
+    x_src, y_src, _ = checked_positions_and_taps(x_src, y_src, input_shape)
     return x_src, y_src
 
 
-def _checked_positions_and_taps(
+def checked_positions_and_taps(
     x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
-    """:func:`_check_positions`, and the range of first taps ``(x_lo, x_hi, y_lo, y_hi)``
+    """:func:`check_positions`, and the range of first taps ``(x_lo, x_hi, y_lo, y_hi)``
     (all zero for an empty output)."""
     x_src = np.asarray(x_src)
     y_src = np.asarray(y_src)
@@ -336,7 +338,7 @@ def warp_planes(
         raise ValueError(f"planes must be 3-D (P, ny_in, nx_in), got shape {planes.shape}")
     if planes.dtype not in (np.float32, np.float64):
         raise ValueError(f"planes must be float32 or float64, got {planes.dtype}")
-    x_src, y_src = _check_positions(x_src, y_src, planes.shape[1:])
+    x_src, y_src = check_positions(x_src, y_src, planes.shape[1:])
     out_shape = (planes.shape[0], *x_src.shape)
     if out is None:
         out = np.zeros(out_shape, dtype=np.float64)

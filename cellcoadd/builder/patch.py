@@ -26,9 +26,10 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
-from cellcoadd.build.cell import build_cell, check_unique_inputs
-from cellcoadd.build.executors import dask_client, resolve_executor
-from cellcoadd.build.select import exposures_near_cells, rough_exposure_box
+from cellcoadd.builder.cell import build_cell, check_unique_inputs
+from cellcoadd.builder.executors import dask_client, resolve_executor
+from cellcoadd.builder.select import exposures_near_cells, rough_exposure_box
+from cellcoadd.errors import CellBuildError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -36,11 +37,6 @@ from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
-
-
-class CellBuildError(RuntimeError):
-    """Building one cell failed; the message names the cell and holds the traceback."""
-
 
 # The exposures of the build, installed once in each process of a pool this module
 # creates (its initializer), so that cell tasks carry exposure indices instead of pixels.

@@ -1,6 +1,6 @@
 """Spreading mask bits through the resampling: the OR over each output pixel's footprint.
 
-The companion of :mod:`cellcoadd.build.warp`: an output pixel carries every bit set in
+The companion of :mod:`cellcoadd.builder.kernels.warp`: an output pixel carries every bit set in
 the 6 x 6 input pixels its Lanczos-3 taps reach (``floor(x) - 2 .. floor(x) + 3``),
 whatever the kernel weights there.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from cellcoadd.build.lanczos import _N_TAPS, KERNEL_HALF_WIDTH
-from cellcoadd.build.warp import _checked_positions_and_taps
+from cellcoadd.builder.kernels.lanczos import KERNEL_HALF_WIDTH, N_TAPS
+from cellcoadd.builder.kernels.warp import checked_positions_and_taps
 
 
 @numba.njit(cache=True)
@@ -19,17 +19,17 @@ def _window_or(mask: np.ndarray, x_first: int, y_first: int, nx: int, ny: int) -
     """``result[j, i]``: OR of ``mask`` over the 6x6 block whose first pixel is
     ``(x_first + i, y_first + j)``; separable, as OR is associative. The inner loops run
     along rows, so they vectorise."""
-    rows = np.zeros((ny + _N_TAPS - 1, nx), dtype=np.int32)
-    for j in range(ny + _N_TAPS - 1):
-        source = mask[y_first + j, x_first : x_first + nx + _N_TAPS - 1]
+    rows = np.zeros((ny + N_TAPS - 1, nx), dtype=np.int32)
+    for j in range(ny + N_TAPS - 1):
+        source = mask[y_first + j, x_first : x_first + nx + N_TAPS - 1]
         target = rows[j]
-        for b in range(_N_TAPS):
+        for b in range(N_TAPS):
             for i in range(nx):
                 target[i] |= source[i + b]
     blocks = np.zeros((ny, nx), dtype=np.int32)
     for j in range(ny):
         target = blocks[j]
-        for a in range(_N_TAPS):
+        for a in range(N_TAPS):
             source = rows[j + a]
             for i in range(nx):
                 target[i] |= source[i]
@@ -74,7 +74,7 @@ def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.n
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.int32:
         raise ValueError(f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}")
-    x_src, y_src, first_taps = _checked_positions_and_taps(x_src, y_src, mask.shape)
+    x_src, y_src, first_taps = checked_positions_and_taps(x_src, y_src, mask.shape)
     out = np.zeros(x_src.shape, dtype=np.int32)
     # Most exposures have no flagged pixel near a cell: nothing to spread then.
     if x_src.size and mask.any():

@@ -4,7 +4,7 @@ For a selected exposure the builder warps, over its footprint, interleaved plane
 (``pixels[y, x, p]``): the image and K noise realizations in counts at the common zero
 point, the variance scaled alike, and, when some pixel is bad, the bad-pixel indicator
 whose warp is the masked fraction. Bad pixels carry no image, noise or variance. The
-noise comes from :mod:`cellcoadd.build.noise`, pixel by pixel, so only the pixels some
+noise comes from :mod:`cellcoadd.builder.kernels.noise`, pixel by pixel, so only the pixels some
 kernel tap reads are computed; the others stay zero and are never read.
 """
 
@@ -15,8 +15,8 @@ import math
 import numba
 import numpy as np
 
-from cellcoadd.build.noise import first_words, noise_key, normal_from_word
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH
+from cellcoadd.builder.kernels.noise import first_words, noise_key, normal_from_word
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
 from cellcoadd.geometry.box import Box
 
 _GROUP = 8  # output pixels per side of the groups whose taps are bounded together
@@ -140,7 +140,7 @@ def input_planes(
     n_noise : int
         Number K of noise realizations.
     noise_seed : (seed, visit, detector)
-        Key of the exposure's noise (see :func:`cellcoadd.build.noise.noise_key`).
+        Key of the exposure's noise (see :func:`cellcoadd.builder.kernels.noise.noise_key`).
 
     Returns
     -------

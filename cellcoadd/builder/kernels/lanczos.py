@@ -1,6 +1,6 @@
 """Normalised Lanczos-3 weights, computed for a whole output row at a time.
 
-Conventions (see :mod:`cellcoadd.build.warp`): 0-based input pixel coordinates with
+Conventions (see :mod:`cellcoadd.builder.kernels.warp`): 0-based input pixel coordinates with
 pixel centres at integers; the taps of a position ``x`` are the input pixels
 ``floor(x) - 2 .. floor(x) + 3``; each 1-D set of six weights is divided by its sum; an
 offset within ``1e-9`` px of an integer is taken as exactly integral.
@@ -9,7 +9,7 @@ Cost: per output pixel and axis one ``sin``/``cos`` pair of a small angle (a sho
 series) and one division. ``sin(pi (d - k)) = (-1)^k sin(pi d)`` is common to all taps
 and cancels in the normalisation; ``sin(pi (d - k) / 3)`` follows from ``sin(pi d / 3)``
 and ``cos(pi d / 3)`` by angle addition with the constants ``cos(k pi/3)``, ``sin(k pi/3)``.
-The weights of a whole output row go into a table (:func:`_row_table`) in a branch-free
+The weights of a whole output row go into a table (:func:`fill_row_table`) in a branch-free
 loop that the compiler vectorises.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 KERNEL_HALF_WIDTH = 3
 """Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
 
-_N_TAPS = 2 * KERNEL_HALF_WIDTH
+N_TAPS = 2 * KERNEL_HALF_WIDTH
 _INTEGER_TOLERANCE = 1e-9  # px; closer offsets are taken as exact integers
 _PI_OVER_3 = math.pi / 3.0
 # Taylor coefficients of sin(a) / a and of sqrt(3) cos(a) in powers of a^2, applied as
@@ -122,12 +122,12 @@ def _lanczos_taps(
     )
 
 
-# Rows of the per-output-row table filled by _row_table: x weights, floor(x), exact x,
+# Rows of the per-output-row table filled by fill_row_table: x weights, floor(x), exact x,
 # then the same for y.
-_TABLE_ROWS = 16
-_FLOOR_X, _EXACT_X = _N_TAPS, _N_TAPS + 1
-_WEIGHT_Y = 8
-_FLOOR_Y, _EXACT_Y = _WEIGHT_Y + _N_TAPS, _WEIGHT_Y + _N_TAPS + 1
+TABLE_ROWS = 16
+_FLOOR_X, _EXACT_X = N_TAPS, N_TAPS + 1
+WEIGHT_Y = 8
+_FLOOR_Y, _EXACT_Y = WEIGHT_Y + N_TAPS, WEIGHT_Y + N_TAPS + 1
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -146,18 +146,20 @@ def _axis_table(positions: np.ndarray, table: np.ndarray, base: int) -> None:
 
 
 @numba.njit(cache=True, inline="always")
-def _row_table(x_src: np.ndarray, y_src: np.ndarray, row: int, table: np.ndarray) -> None:
-    """Fill ``table`` (``(_TABLE_ROWS, nx_out)``) for output row ``row``.
+def fill_row_table(x_src: np.ndarray, y_src: np.ndarray, row: int, table: np.ndarray) -> None:
+    """Fill ``table`` (``(TABLE_ROWS, nx_out)``) for output row ``row``.
 
     Rows 0-5: x weights (:func:`_lanczos_taps`), 6: floor(x), 7: exact x; rows 8-15: the
     same for y.
     """
     _axis_table(x_src[row], table, 0)
-    _axis_table(y_src[row], table, _WEIGHT_Y)
+    _axis_table(y_src[row], table, WEIGHT_Y)
 
 
 @numba.njit(cache=True, inline="always")
-def _corner(table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.uint64) -> np.uint64:
+def footprint_corner(
+    table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.uint64
+) -> np.uint64:
     """Flat index of the first tap (top-left of the 6x6 block) of output pixel ``col``."""
     first_x = np.uint64(np.int64(table[_FLOOR_X, col]) - 2)
     first_y = np.uint64(np.int64(table[_FLOOR_Y, col]) - 2)
@@ -165,7 +167,7 @@ def _corner(table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.u
 
 
 @numba.njit(cache=True, inline="always")
-def _exact_source(
+def exact_source_index(
     table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.uint64
 ) -> np.int64:
     """Flat index of the input pixel an output pixel coincides with, or -1."""

@@ -5,12 +5,9 @@ from __future__ import annotations
 import galsim
 import numpy as np
 
+from cellcoadd.errors import PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.exposure import Exposure
-
-
-class PsfError(ValueError):
-    """The PSF of an exposure could not be drawn (recorded as a rejection ``"bad_psf"``)."""
 
 
 def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.ndarray:

@@ -14,7 +14,7 @@ run with seed ``s``:
 3. the same noise fields (unit normals from a generator keyed by ``(s, i)``, scaled by
    ``sigma``) are added to both members;
 4. ``coadd`` mode builds cell ``(0, 0)`` of a one-cell sky map centred on the objects
-   with the real builder (:func:`cellcoadd.build.build_cell`, seed ``s``: noise
+   with the real builder (:func:`cellcoadd.builder.build_cell`, seed ``s``: noise
    realizations keyed by ``(s, epoch, i)``, hence the same for both members) and runs
    metacalibration on it through :func:`~cellcoadd.shear.observation.to_observation`;
    ``single`` mode runs metacalibration on the first epoch alone, with its PSF drawn at
@@ -36,8 +36,8 @@ import galsim
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from cellcoadd.build import build_cell
-from cellcoadd.build.warp import KERNEL_HALF_WIDTH
+from cellcoadd.builder import build_cell
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
