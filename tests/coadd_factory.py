@@ -8,6 +8,7 @@ bit for bit; ``assert_same`` compares two patches exactly. ``tiny_patch`` and
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import galsim
@@ -218,8 +219,7 @@ def tiny_exposures(patch: Patch, n: int = 2, *, first_visit: int = 0) -> list[Ex
 def cell_sized_exposure(cell: Cell, visit: int, psf: object) -> Exposure:
     """A small exposure that fully covers ``cell`` only (its neighbours get ``edge``)."""
     exposure = make_exposure(cell.center_sky, shape=(40, 40), visit=visit)
-    exposure.psf = psf
-    return exposure
+    return dataclasses.replace(exposure, psf=psf)
 
 
 class DyingPsf:

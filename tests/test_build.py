@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import time
 
@@ -304,8 +305,8 @@ def test_a_failing_cell_is_named(tract, patch_inputs):
     def failing_psf(x, y):
         raise ZeroDivisionError("boom")
 
-    bad = make_exposure(exposures[0].wcs.wcs.crval, visit=99)
-    bad.psf = failing_psf  # recorded as bad_psf, not a failure
+    bad = dataclasses.replace(make_exposure(exposures[0].wcs.wcs.crval, visit=99), psf=failing_psf)
+    # recorded as bad_psf, not a failure
     ok = build_patch(tract.patch(0, 0), [*exposures, bad], BUILD, seed=1, progress=False)
     assert any(r.status == "bad_psf" for c in ok.cells.values() for r in c.inputs)
     with pytest.raises(CellBuildError, match=r"cell \(-?\d+, -?\d+\) of tract 0 failed"):
@@ -324,8 +325,7 @@ def test_bad_inputs_are_refused_or_recorded(tract):
     def broken_psf(x, y):
         raise RuntimeError("no PSF model here")
 
-    bad_psf = make_exposure(cell.center_sky, visit=3)
-    bad_psf.psf = broken_psf
+    bad_psf = dataclasses.replace(make_exposure(cell.center_sky, visit=3), psf=broken_psf)
     coadd = build_cell(cell, [good, bad_psf], BUILD)
     assert {r.visit: r.status for r in coadd.inputs} == {1: "used", 3: "bad_psf"}
 

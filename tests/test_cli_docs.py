@@ -12,7 +12,8 @@ CLI_DOC = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
 
 
 def _commands(group: click.Group, prefix: str):
-    for name, command in group.commands.items():
+    for name in group.list_commands(None):  # type: ignore[arg-type]
+        command = group.get_command(None, name)  # type: ignore[arg-type]
         yield f"{prefix} {name}", command
         if isinstance(command, click.Group):
             yield from _commands(command, f"{prefix} {name}")

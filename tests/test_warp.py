@@ -156,13 +156,6 @@ def test_interleaved_accumulation_is_bit_identical_to_warp_planes(n_planes):
         assert np.array_equal(out[p], expected[0]), p
 
 
-def test_parallel_is_bit_identical(rotated_job):
-    planes, x_src, y_src = rotated_job
-    serial = warp_planes(planes, x_src, y_src)
-    parallel = warp_planes(planes, x_src, y_src, parallel=True)
-    assert np.array_equal(serial, parallel)
-
-
 def test_float32_input_matches_float64(rotated_job):
     planes, x_src, y_src = rotated_job
     single = planes.astype(np.float32)

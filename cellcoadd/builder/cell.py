@@ -19,12 +19,12 @@ from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.kernels.warp import warp_planes
 from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import PsfError, draw_exposure_psf, psf_moments
-from cellcoadd.builder.select import Candidate, select_exposure
+from cellcoadd.builder.select import Candidate, Rejection, select_exposure
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
-from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
 
 
@@ -113,7 +113,7 @@ class _SubMapping:
         self.x, self.y = x, y
 
 
-def _record(exposure: Exposure, status: str, **fields: float) -> InputRecord:
+def _record(exposure: Exposure, status: InputStatus, **fields: float) -> InputRecord:
     return InputRecord(
         visit=exposure.visit,
         detector=exposure.detector,
@@ -145,6 +145,7 @@ def build_cell(
     seed: int = 0,
     *,
     mask_bits: MaskBits | None = None,
+    band: str | None = None,
 ) -> CellCoadd:
     """Coadd the exposures that fully cover ``cell`` into a :class:`CellCoadd`.
 
@@ -161,6 +162,9 @@ def build_cell(
         result is bit-identical, in any process.
     mask_bits : MaskBits
         Bit definitions of the output mask (default: those of the first exposure).
+    band : str, optional
+        The band of the coadd (default: that of the first exposure); exposures of another
+        band are rejected with status ``band_mismatch``.
 
     Returns
     -------
@@ -179,30 +183,33 @@ def build_cell(
     records: list[InputRecord] = []
     cell_jacobian = _cell_jacobian(cell)  # for the PSF moments of every input
     grid_cache: dict = {}  # mapping grids, the same for every exposure of the cell
+    band = band if band is not None else (exposures[0].band if exposures else None)
     for exposure in exposures:
+        if exposure.band != band:
+            records.append(_record(exposure, InputStatus.BAND_MISMATCH))
+            continue
         bad_bits = exposure.mask_bits.mask_of(
             name for name in config.bad_mask_bits if name in exposure.mask_bits.bits
         )
-        status, found = select_exposure(cell, exposure, config, bad_bits, grid_cache=grid_cache)
-        if status != "used":
-            records.append(_record(exposure, status, **found))
+        found = select_exposure(cell, exposure, config, bad_bits, grid_cache=grid_cache)
+        if isinstance(found, Rejection):
+            records.append(_record(exposure, found.status, overlap_fraction=found.overlap_fraction))
             continue
-        candidate: Candidate = found
         try:
-            psf_stamp = _coadd_psf_contribution(cell, candidate, config.psf_size)
+            psf_stamp = _coadd_psf_contribution(cell, found, config.psf_size)
         except PsfError:
             records.append(
-                _record(exposure, "bad_psf", overlap_fraction=candidate.overlap_fraction)
+                _record(exposure, InputStatus.BAD_PSF, overlap_fraction=found.overlap_fraction)
             )
             continue
-        _add_exposure(sums, candidate, psf_stamp, config, seed)
+        _add_exposure(sums, found, psf_stamp, config, seed)
         moments = psf_moments(psf_stamp, cell_jacobian)
         records.append(
             _record(
                 exposure,
-                "used",
-                weight=candidate.weight,
-                overlap_fraction=candidate.overlap_fraction,
+                InputStatus.USED,
+                weight=found.weight,
+                overlap_fraction=found.overlap_fraction,
                 **moments,
             )
         )

@@ -19,13 +19,28 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.inputs import InputStatus
 
 # Range of scaled background variances the float32 coadd planes can represent.
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-@dataclass
+# What evaluating a WCS far from its detector may raise (astropy's WCS errors are
+# ValueErrors; the iterative SIP inverse raises NoConvergence; MappingError is a
+# ValueError): anything else is a bug and propagates.
+WCS_ERRORS = (ValueError, ArithmeticError, NoConvergence)
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """An exposure rejected for one cell: the reason and the record fields known so far."""
+
+    status: InputStatus
+    overlap_fraction: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
 class Candidate:
     """An exposure that passed selection for one cell, with what the warp needs."""
 
@@ -50,7 +65,7 @@ def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
     ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
     try:
         ex, ey = exposure.wcs.all_world2pix(ra, dec, 0, quiet=True)
-    except Exception:  # distortion solutions can fail far from the detector
+    except WCS_ERRORS:  # distortion solutions can fail far from the detector
         return None
     if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
         return None
@@ -98,7 +113,7 @@ def exposures_near_cells(
             for flagged in (failure.divergent, failure.slow_conv):
                 if flagged is not None:
                     unsure[np.asarray(flagged)] = True
-        except Exception:  # any other failure: let the exact test decide for every cell
+        except WCS_ERRORS:  # any other WCS failure: the exact test decides for every cell
             ex = ey = None
         if ex is not None:
             ex = np.asarray(ex).reshape(len(cells), n_points)
@@ -126,15 +141,15 @@ def select_exposure(
     bad_bits: int,
     *,
     grid_cache: dict | None = None,
-) -> tuple[str, Candidate | dict]:
+) -> Candidate | Rejection:
     """Decide whether ``exposure`` can be used for ``cell``.
 
-    Returns ``("used", Candidate)`` or ``(reason, details)`` with ``details`` the record
-    fields known so far (``overlap_fraction``, ``weight``). ``grid_cache``: a dict shared
-    by the calls for one cell, reusing its mapping grids (see :func:`map_box`).
+    Returns a :class:`Candidate` (used) or a :class:`Rejection` with the reason and the
+    overlap fraction when known. ``grid_cache``: a dict shared by the calls for one cell,
+    reusing its mapping grids (see :func:`map_box`).
     """
     if rough_exposure_box(cell, exposure) is None:
-        return "no_overlap", {"overlap_fraction": 0.0}
+        return Rejection(InputStatus.NO_OVERLAP)
     outer = Box.from_shape(cell.outer_bbox.shape)
     try:
         mapping = map_box(
@@ -144,38 +159,38 @@ def select_exposure(
             tolerance=config.mapping_tolerance,
             grid_cache=grid_cache,
         )
-    except Exception:
-        return "no_overlap", {"overlap_fraction": 0.0}
+    except WCS_ERRORS:
+        return Rejection(InputStatus.NO_OVERLAP)
     valid = exposure.valid_box
     x, y = mapping.x, mapping.y
     inside = valid.contains(x, y)
     overlap_fraction = float(np.mean(inside))
     if overlap_fraction == 0.0:
-        return "no_overlap", {"overlap_fraction": 0.0}
+        return Rejection(InputStatus.NO_OVERLAP)
     if not mapping.is_complete:
         # part of the cell falls off the exposure's projection: it cannot cover the cell
-        return "edge", {"overlap_fraction": overlap_fraction}
+        return Rejection(InputStatus.EDGE, overlap_fraction)
     footprint = footprint_box(mapping)
     if not valid.contains_box(footprint):
-        return "edge", {"overlap_fraction": overlap_fraction}
+        return Rejection(InputStatus.EDGE, overlap_fraction)
     flux_scale = 10.0 ** (0.4 * (config.zero_point - exposure.zero_point))
     variance = flux_scale**2 * exposure.background_variance
     weight = 1.0 / variance if variance > 0.0 else float("nan")
     if not np.isfinite(weight) or weight <= 0.0:
-        return "bad_weight", {"overlap_fraction": overlap_fraction}
+        return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
     if not _FLOAT32_TINY < variance < _FLOAT32_MAX:
         # the coadd stores float32 planes: this input's scaled noise would under/overflow
-        return "bad_weight", {"overlap_fraction": overlap_fraction}
+        return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0
     if bad.mean() > config.max_mask_fraction:
-        return "masked_fraction", {"overlap_fraction": overlap_fraction, "weight": 0.0}
+        return Rejection(InputStatus.MASKED_FRACTION, overlap_fraction)
     if not np.all(np.isfinite(exposure.image[footprint.slices][~bad])):
-        return "bad_pixels", {"overlap_fraction": overlap_fraction}
+        return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
     if not np.isscalar(exposure.variance):
         variance = exposure.variance[footprint.slices][~bad]
         if not (np.all(np.isfinite(variance)) and np.all(variance > 0)):
-            return "bad_weight", {"overlap_fraction": overlap_fraction}
-    return "used", Candidate(
+            return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
+    return Candidate(
         exposure=exposure,
         mapping=mapping,
         footprint=footprint,

@@ -7,21 +7,55 @@ case the traceback is shown.
 from __future__ import annotations
 
 import sys
+from importlib import import_module
 
 import click
 
 from cellcoadd._version import __version__
-from cellcoadd.cli.analyze import analyze
-from cellcoadd.cli.build import build
-from cellcoadd.cli.demo import demo
-from cellcoadd.cli.geometry import locate, skymap
-from cellcoadd.cli.inspect import show, trim
-from cellcoadd.cli.shear import validate_shear
-from cellcoadd.cli.simulate import simulate
-from cellcoadd.cli.storage import convert_command, info_command, schemas_command
+
+#: command name -> (module, attribute, one-line help shown by ``cellcoadd --help``). A
+#: command's module is imported only when the command runs or shows its own help, so
+#: ``cellcoadd --help`` stays fast; a test checks these lines against the commands'.
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "demo": ("demo", "demo", "Simulate a small field, build, store, check and plot it."),
+    "skymap": ("geometry", "skymap", "Print a sky map summary; optionally save and draw it."),
+    "locate": ("geometry", "locate", "Print the tract, patch and cell holding sky positions."),
+    "simulate": ("simulate", "simulate", "Simulate exposures as in the paper (section 3)."),
+    "build": ("build", "build", "Coadd exposure files into the cells of one patch."),
+    "info": ("storage", "info_command", "Summarise a stored patch coadd (no pixels read)."),
+    "show": ("inspect", "show", "Draw one cell of a coadd file."),
+    "trim": ("inspect", "trim", "Add unique-area flags (is_primary, ...) to a catalog."),
+    "convert": ("storage", "convert_command", "Copy a patch coadd into another layout."),
+    "schemas": ("storage", "schemas_command", "Write the JSON Schemas of the metadata."),
+    "validate-shear": ("shear", "validate_shear", "Measure the shear bias m, c on cells."),
+    "analyze": ("analyze", "analyze", "Predict what edge-free cell coadds cost."),
+}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+class LazyGroup(click.Group):
+    """A command group that imports a command's module only when the command is used."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        module, attribute, _ = COMMANDS[cmd_name]
+        command = getattr(import_module(f"cellcoadd.cli.{module}"), attribute)
+        assert isinstance(command, click.Command)
+        return command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        rows = [(name, short) for name, (_, _, short) in COMMANDS.items()]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(
+    cls=LazyGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+)
 @click.version_option(__version__, prog_name="cellcoadd")
 @click.option("--debug", is_flag=True, help="Show full tracebacks on errors.")
 def cli(debug: bool) -> None:
@@ -34,23 +68,6 @@ def cli(debug: bool) -> None:
       cellcoadd locate 150.1 2.2
       cellcoadd <command> --help
     """
-
-
-for command in (
-    demo,
-    skymap,
-    locate,
-    simulate,
-    build,
-    info_command,
-    show,
-    trim,
-    convert_command,
-    schemas_command,
-    validate_shear,
-    analyze,
-):
-    cli.add_command(command)
 
 
 def main(argv: list[str] | None = None) -> None:

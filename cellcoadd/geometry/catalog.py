@@ -14,8 +14,6 @@ import numpy as np
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 
-FLAG_NAMES = ("is_cell_inner", "is_patch_inner", "is_tract_inner", "is_primary")
-
 
 def _column(catalog: Any, name: str) -> np.ndarray:
     try:

@@ -33,7 +33,7 @@ from cellcoadd.model.maskbits import MaskBits
 PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, frozen=True)
 class Exposure:
     """One calibrated exposure of a detector.
 
@@ -60,6 +60,11 @@ class Exposure:
         Names of the bits of ``mask``.
     valid_box : Box, optional
         The pixels that hold data (default the whole array).
+
+    Notes
+    -----
+    Frozen: fields are validated once, at construction; use ``dataclasses.replace`` for
+    a modified copy (validated again).
     """
 
     image: np.ndarray
@@ -80,40 +85,42 @@ class Exposure:
             value = getattr(self, field_name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 raise ExposureError(f"{name}: {field_name} must be an integer, got {value!r}")
-            setattr(self, field_name, int(value))
+            object.__setattr__(self, field_name, int(value))
         try:
             # surrounding spaces survive exposure files but not coadd input tables,
             # where build_patch refuses them
             check_band_name(self.band.strip(" ") if isinstance(self.band, str) else "")
         except ValueError as err:
             raise ExposureError(f"{name}: {err} (band={self.band!r})") from None
-        self.image = np.asarray(self.image)
+        object.__setattr__(self, "image", np.asarray(self.image))
         if self.image.ndim != 2 or self.image.size == 0:
             raise ExposureError(f"{name}: image must be a non-empty 2-D array")
         if self.image.dtype.kind not in "biuf":
             raise ExposureError(f"{name}: image must be real-valued, got dtype {self.image.dtype}")
         if not np.issubdtype(self.image.dtype, np.floating):
-            self.image = self.image.astype(np.float64)
-        self.wcs = _checked_wcs(name, self.wcs, self.image.shape)
+            object.__setattr__(self, "image", self.image.astype(np.float64))
+        object.__setattr__(self, "wcs", _checked_wcs(name, self.wcs, self.image.shape))
         zero_point = self.zero_point
         if isinstance(zero_point, bool) or not isinstance(zero_point, numbers.Real):
             raise ExposureError(f"{name}: zero_point must be a number, got {zero_point!r}")
         if not np.isfinite(zero_point) or not -50.0 < zero_point < 100.0:
             raise ExposureError(f"{name}: zero_point {zero_point} is not a plausible magnitude")
-        self.zero_point = float(zero_point)
+        object.__setattr__(self, "zero_point", float(zero_point))
         if self.mask is None:
-            self.mask = np.zeros(self.image.shape, dtype=np.int32)
-        self.mask = np.asarray(self.mask)
+            object.__setattr__(self, "mask", np.zeros(self.image.shape, dtype=np.int32))
+        object.__setattr__(self, "mask", np.asarray(self.mask))
         if self.mask.shape != self.image.shape or not np.issubdtype(self.mask.dtype, np.integer):
             raise ExposureError(f"{name}: mask must be an integer array of the image's shape")
         unknown = self.mask_bits.unknown_bits(self.mask)
         if unknown:
             raise ExposureError(f"{name}: mask has bits {unknown:#x} with no name in mask_bits")
-        self.mask = self.mask.astype(np.int32, copy=False)
-        self.variance = _checked_variance(name, self.variance, self.image.shape)
+        object.__setattr__(self, "mask", self.mask.astype(np.int32, copy=False))
+        object.__setattr__(
+            self, "variance", _checked_variance(name, self.variance, self.image.shape)
+        )
         full = Box.from_shape(self.image.shape)
         if self.valid_box is None:
-            self.valid_box = full
+            object.__setattr__(self, "valid_box", full)
         elif not isinstance(self.valid_box, Box):
             raise ExposureError(f"{name}: valid_box must be a Box, got {self.valid_box!r}")
         elif not full.contains_box(self.valid_box):

@@ -4,26 +4,45 @@ from __future__ import annotations
 
 import struct
 import unicodedata
-from typing import Literal, get_args
+from enum import Enum
+from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 
-#: Status of an input in a cell: ``"used"`` or the reason it was rejected. Extend by
-#: appending a reason here; stored files then need a major format version bump, because
-#: older readers cannot represent the new value.
-InputStatus = Literal[
-    "used",
-    "no_overlap",
-    "edge",
-    "masked_fraction",
-    "bad_weight",
-    "bad_psf",
-    "bad_pixels",
-    "band_mismatch",
-]
+
+class InputStatus(str, Enum):
+    """Status of an input in a cell: ``USED`` or the reason it was rejected.
+
+    Members are strings (``InputStatus.EDGE == "edge"``), which is how files store them.
+    Extend by appending a reason here; stored files then need a major format version
+    bump, because older readers cannot represent the new value.
+    """
+
+    USED = "used"
+    NO_OVERLAP = "no_overlap"  # no pixel of the cell's outer box lands on the exposure
+    EDGE = "edge"  # the exposure does not cover the outer box plus the kernel's reach
+    MASKED_FRACTION = "masked_fraction"  # too many bad pixels under the cell
+    BAD_WEIGHT = "bad_weight"  # background variance not positive, finite, representable
+    BAD_PSF = "bad_psf"  # the PSF model could not be drawn at the cell centre
+    BAD_PIXELS = "bad_pixels"  # non-finite pixels that no bad mask bit flags
+    BAND_MISMATCH = "band_mismatch"  # the exposure's band is not the build's
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
 
 #: Every valid status, ``"used"`` first.
-INPUT_STATUSES: tuple[str, ...] = get_args(InputStatus)
+INPUT_STATUSES: tuple[str, ...] = tuple(status.value for status in InputStatus)
 
 #: The statuses that mean "rejected", in declaration order.
 REJECTION_REASONS: tuple[str, ...] = INPUT_STATUSES[1:]
@@ -67,8 +86,9 @@ class InputRecord(BaseModel):
     weight : float
         Coadd weight, ``1 / background variance`` at the common zero point (>= 0, finite);
         0 exactly when the input was rejected, > 0 when it was used.
-    status : str
-        ``"used"`` or the rejection reason, one of :data:`REJECTION_REASONS`.
+    status : InputStatus or str
+        ``"used"`` or the rejection reason, one of :data:`REJECTION_REASONS` (stored as
+        the string value of an :class:`InputStatus`).
     overlap_fraction : float
         Fraction (0..1) of the cell's outer box covered by the exposure's valid box.
     psf_fwhm : float
@@ -86,13 +106,20 @@ class InputRecord(BaseModel):
     equal; :meth:`identical` compares floats bit for bit instead.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid", ser_json_inf_nan="constants")
+    # statuses are kept as their string values, which is what files hold
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", ser_json_inf_nan="constants", use_enum_values=True
+    )
 
     visit: int
     detector: int
     band: str
     weight: float = Field(ge=0.0, allow_inf_nan=False)
-    status: InputStatus
+    # the schema inlines the values (a plain string enum), as files store them
+    status: Annotated[
+        InputStatus,
+        WithJsonSchema({"enum": list(INPUT_STATUSES), "title": "Status", "type": "string"}),
+    ]
     overlap_fraction: float = Field(ge=0.0, le=1.0)
     psf_fwhm: float = Field(description="arcsec")
     psf_e1: float
@@ -107,12 +134,12 @@ class InputRecord(BaseModel):
 
     @model_validator(mode="after")
     def _check_weight_matches_status(self) -> InputRecord:
-        if self.status == "used" and not self.weight > 0.0:
+        if self.status == InputStatus.USED and not self.weight > 0.0:
             raise ValueError(
                 f"input (visit={self.visit}, detector={self.detector}) is used but has "
                 f"weight {self.weight}; a used input needs a positive weight"
             )
-        if self.status != "used" and self.weight != 0.0:
+        if self.status != InputStatus.USED and self.weight != 0.0:
             raise ValueError(
                 f"input (visit={self.visit}, detector={self.detector}) was rejected "
                 f"({self.status}) but has weight {self.weight}; rejected inputs have weight 0"
@@ -122,7 +149,7 @@ class InputRecord(BaseModel):
     @property
     def is_used(self) -> bool:
         """Whether the input contributed to the cell."""
-        return self.status == "used"
+        return self.status == InputStatus.USED
 
     @property
     def key(self) -> tuple[int, int]:

@@ -35,7 +35,6 @@ from cellcoadd.geometry.box import Box
 _MASK32 = np.uint64(0xFFFFFFFF)
 _SHIFT32 = np.uint64(32)
 _SHIFT11 = np.uint64(11)
-_SHIFT21 = np.uint64(21)
 # Philox4x32 round multipliers and key increments (Weyl constants) of Random123.
 _PHILOX_M0 = np.uint64(0xD2511F53)
 _PHILOX_M1 = np.uint64(0xCD9E8D57)

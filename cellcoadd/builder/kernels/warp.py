@@ -233,23 +233,6 @@ def _warp_serial(
         _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
 
 
-@numba.njit(cache=True, parallel=True)
-def _warp_parallel(
-    flat_planes: np.ndarray,
-    plane_shape: tuple[int, int],
-    x_src: np.ndarray,
-    y_src: np.ndarray,
-    out: np.ndarray,
-    weight: float,
-    scale: np.ndarray,
-    use_scale: bool,
-) -> None:
-    # Rows are independent, so results do not depend on the number of threads.
-    for row in numba.prange(x_src.shape[0]):
-        table = np.empty((TABLE_ROWS, x_src.shape[1]))
-        _warp_row(flat_planes, plane_shape, x_src, y_src, out, weight, scale, use_scale, row, table)
-
-
 def check_positions(
     x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -300,8 +283,6 @@ def warp_planes(
     out: np.ndarray | None = None,
     weight: float = 1.0,
     scale: np.ndarray | None = None,
-    *,
-    parallel: bool = False,
 ) -> np.ndarray:
     """Resample several planes with one normalised Lanczos-3 kernel and accumulate.
 
@@ -320,8 +301,6 @@ def warp_planes(
     scale : ndarray, shape (ny_out, nx_out), optional
         Per-output-pixel factor, e.g. the pixel-area ratio that converts surface
         brightness per input pixel into per output pixel. ``None`` means one.
-    parallel : bool
-        Spread output rows over numba threads; results are identical either way.
 
     Returns
     -------
@@ -359,8 +338,7 @@ def warp_planes(
             raise ValueError(f"scale has shape {scale_array.shape}, expected {x_src.shape}")
     if x_src.size == 0:
         return out
-    kernel = _warp_parallel if parallel else _warp_serial
     flat_planes = np.ascontiguousarray(planes).reshape(-1)
     plane_shape = (int(planes.shape[1]), int(planes.shape[2]))
-    kernel(flat_planes, plane_shape, x_src, y_src, out, weight, scale_array, use_scale)
+    _warp_serial(flat_planes, plane_shape, x_src, y_src, out, weight, scale_array, use_scale)
     return out
