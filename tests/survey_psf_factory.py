@@ -124,9 +124,7 @@ def moffat_effective_stamp(fwhm_pix: float, size: int, samp: float) -> np.ndarra
     """
     if size % 2 != 1:
         raise ValueError(f"size must be odd, got {size}")
-    effective = galsim.Convolve(
-        galsim.Moffat(beta=MOFFAT_BETA, fwhm=fwhm_pix), galsim.Pixel(1.0)
-    )
+    effective = galsim.Convolve(galsim.Moffat(beta=MOFFAT_BETA, fwhm=fwhm_pix), galsim.Pixel(1.0))
     arr = effective.drawImage(nx=size, ny=size, scale=samp, method="no_pixel").array
     return arr / arr.sum()
 
@@ -331,9 +329,7 @@ def build_piff_model(
             ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
             bounds = galsim.BoundsI(ix - half, ix + half, iy - half, iy + half)
             image = galsim.ImageD(bounds, wcs=wcs)
-            _moffat_at(x, y, nx, ny, fwhm_range).drawImage(
-                image, center=galsim.PositionD(x, y)
-            )
+            _moffat_at(x, y, nx, ny, fwhm_range).drawImage(image, center=galsim.PositionD(x, y))
             weight = galsim.ImageD(bounds, wcs=wcs, init_value=1.0e6)
             data = piff.StarData(
                 image,

@@ -2,16 +2,18 @@
 
 PSF convention
 --------------
-``psf`` describes the PSF *before* the pixel response, as a GalSim profile in arcsec on
-the local tangent plane (``u`` West, ``v`` North; see :mod:`cellcoadd.geometry.wcs_utils`).
-Drawing it with the pixel response (GalSim ``method="auto"``) through the exposure's local
-WCS at a position gives the image of a point source centred there, so a star drawn the
-same way into the exposure matches the PSF exactly. Three forms are accepted:
+``psf`` is a :class:`~cellcoadd.model.psf.PsfModel` (``GalSimPsf``, ``ImagePsf``,
+``CallablePsf``, ``PsfexPsf``, ``PiffPsf``) that draws the image of a point source,
+pixel response included, at any exposure position; see :mod:`cellcoadd.model.psf`. For
+convenience three bare forms are accepted and wrapped (:attr:`Exposure.psf_model`):
 
-* a ``galsim.GSObject``: constant over the exposure;
-* a callable ``(x, y) -> galsim.GSObject`` (0-based exposure pixels) for a varying PSF;
-* a ``galsim.Image`` (an image-based PSF): an odd square stamp *already including* the
-  pixel response, sampled on the exposure pixel grid and centred on its central pixel.
+* a ``galsim.GSObject``: constant over the exposure, *before* the pixel response, in
+  arcsec on the local tangent plane (``u`` West, ``v`` North);
+* a callable ``(x, y) -> galsim.GSObject`` (0-based exposure pixels), also *before* the
+  pixel (for a profile that includes it, such as PSFEx's or Piff's, use
+  ``CallablePsf(func, includes_pixel=True)``);
+* a ``galsim.Image``: an odd square stamp *already including* the pixel response,
+  sampled on the exposure pixel grid and centred on its central pixel.
 """
 
 from __future__ import annotations
@@ -24,13 +26,14 @@ import galsim
 import numpy as np
 from astropy.wcs import WCS
 
-from cellcoadd.errors import ExposureError
+from cellcoadd.errors import ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, local_jacobian
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf import PsfModel, as_psf_model
 
-PsfLike = galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
+PsfLike = PsfModel | galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
 
 
 @dataclass(eq=False, frozen=True)
@@ -45,7 +48,7 @@ class Exposure:
         Celestial WCS of ``image`` (SIP distortion allowed); pixel (0, 0) is ``image[0, 0]``.
     variance : float or ndarray
         Per-pixel variance of ``image`` (counts^2); a scalar means a uniform background.
-    psf : GSObject, callable or galsim.Image
+    psf : PsfModel, GSObject, callable or galsim.Image
         The PSF; see the module docstring for the convention.
     visit, detector : int
         Identity of the exposure; ``(visit, detector)`` must be unique in a build.
@@ -130,17 +133,11 @@ class Exposure:
             raise ExposureError(
                 f"{name}: {int(bad.sum())} non-finite pixels are not flagged in the mask"
             )
-        if isinstance(self.psf, galsim.Image):
-            stamp = self.psf.array
-            ny, nx = stamp.shape
-            if ny != nx or ny % 2 == 0:
-                raise ExposureError(
-                    f"{name}: an image PSF must be an odd square stamp, got {ny} x {nx}"
-                )
-            if not (np.all(np.isfinite(stamp)) and stamp.sum() > 0):
-                raise ExposureError(f"{name}: an image PSF must be finite with a positive sum")
-        elif not (isinstance(self.psf, galsim.GSObject) or callable(self.psf)):
-            raise ExposureError(f"{name}: psf must be a GSObject, a callable or a galsim.Image")
+        try:
+            model = as_psf_model(self.psf)
+        except PsfError as err:
+            raise ExposureError(f"{name}: {err}") from None
+        object.__setattr__(self, "_psf_model", model)
 
     @property
     def key(self) -> tuple[int, int]:
@@ -167,32 +164,18 @@ class Exposure:
         """``[[du/dx, du/dy], [dv/dx, dv/dy]]`` in arcsec/pixel at exposure pixel ``(x, y)``."""
         return local_jacobian(self.wcs, x, y)
 
-    def psf_profile(self, x: float, y: float) -> galsim.GSObject:
-        """The PSF at ``(x, y)`` as a GalSim profile.
-
-        For a profile PSF this excludes the pixel (draw with ``method="auto"``); for an
-        image PSF the returned ``InterpolatedImage`` includes it (draw with
-        ``method="no_pixel"``); see :attr:`psf_includes_pixel`.
-        """
-        if isinstance(self.psf, galsim.Image):
-            jac = self.local_jacobian(x, y)
-            wcs = galsim.JacobianWCS(jac[0, 0], jac[0, 1], jac[1, 0], jac[1, 1])
-            image = galsim.Image(self.psf.array, wcs=wcs)
-            return galsim.InterpolatedImage(image, x_interpolant="lanczos3")
-        if isinstance(self.psf, galsim.GSObject):
-            return self.psf
-        profile = self.psf(x, y)
-        if not isinstance(profile, galsim.GSObject):
-            raise ExposureError(
-                f"exposure (visit={self.visit}, detector={self.detector}): PSF callable "
-                f"returned {type(profile).__name__}, not a galsim.GSObject"
-            )
-        return profile
-
     @property
-    def psf_includes_pixel(self) -> bool:
-        """Whether :meth:`psf_profile` already contains the pixel response."""
-        return isinstance(self.psf, galsim.Image)
+    def psf_model(self) -> PsfModel:
+        """The PSF as a :class:`~cellcoadd.model.psf.PsfModel` (``psf`` itself, or its
+        wrapper for the bare forms)."""
+        return self._psf_model  # type: ignore[attr-defined, no-any-return]
+
+    def draw_psf(
+        self, x: float, y: float, box: Box, center: tuple[float, float] | None = None
+    ) -> np.ndarray:
+        """The PSF at exposure pixel ``(x, y)``, pixel included, unit flux, over ``box``,
+        centred at ``(x, y)`` or ``center`` (see :meth:`cellcoadd.model.psf.PsfModel.draw`)."""
+        return self.psf_model.draw(x, y, box, self.local_jacobian(x, y), center)
 
 
 def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:

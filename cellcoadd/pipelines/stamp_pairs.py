@@ -32,12 +32,12 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-import galsim
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd.builder import build_cell
 from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
+from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
@@ -294,12 +294,8 @@ def epoch_psf_image(exposure: Exposure, x: float, y: float, size: int) -> np.nda
     Drawn through the exposure's local jacobian at ``(x, y)``, with the pixel response,
     centred on the stamp's central pixel: the form metacal takes.
     """
-    jac = exposure.local_jacobian(x, y)
-    wcs = galsim.JacobianWCS(jac[0, 0], jac[0, 1], jac[1, 0], jac[1, 1])
-    stamp = galsim.ImageD(size, size, wcs=wcs)
-    method = "no_pixel" if exposure.psf_includes_pixel else "auto"
-    exposure.psf_profile(x, y).drawImage(image=stamp, method=method)
-    return stamp.array.copy()
+    centre = float(size // 2)
+    return exposure.draw_psf(x, y, Box.from_shape((size, size)), center=(centre, centre))
 
 
 def _measure_single(
