@@ -13,13 +13,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
-from cellcoadd.builder.kernels.input_planes import input_planes
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.kernels.warp import warp_planes
 from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import PsfError, draw_exposure_psf, psf_moments
 from cellcoadd.builder.select import Candidate, Rejection, select_exposure
+from cellcoadd.errors import InputError
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -48,21 +49,16 @@ class _Sums:
 
 
 def _add_exposure(
-    sums: _Sums, candidate: Candidate, psf_stamp: np.ndarray, config: BuildConfig, seed: int
+    sums: _Sums,
+    candidate: Candidate,
+    pixels: np.ndarray,
+    mask: np.ndarray,
+    psf_stamp: np.ndarray,
+    n_noise: int,
 ) -> None:
-    exposure, box, mapping = candidate.exposure, candidate.footprint, candidate.mapping
-    n_noise = config.n_noise
-    pixels = input_planes(
-        exposure.image[box.slices],
-        exposure.variance if np.isscalar(exposure.variance) else exposure.variance[box.slices],
-        candidate.bad,
-        box,
-        mapping.x,
-        mapping.y,
-        candidate.flux_scale,
-        n_noise,
-        (seed, exposure.visit, exposure.detector),
-    )
+    """Warp ``pixels`` (from :func:`exposure_planes`) and ``mask`` (coadd bit numbering)
+    of one exposure into the cell's running sums."""
+    box, mapping = candidate.footprint, candidate.mapping
     # without bad pixels the masked-fraction plane would be all zeros: it is left out
     with_mfrac = pixels.shape[2] == n_noise + 3
     x_local = mapping.x - box.x_start
@@ -82,7 +78,7 @@ def _add_exposure(
         np.stack([area, area**2]),
         plane_scales,
     )
-    sums.mask |= warp_mask_or(exposure.mask[box.slices], x_local, y_local)
+    sums.mask |= warp_mask_or(mask, x_local, y_local)
     sums.psf += weight * psf_stamp
     sums.weight += weight
 
@@ -129,6 +125,27 @@ def _record(exposure: Exposure, status: InputStatus, **fields: float) -> InputRe
     )
 
 
+def check_mask_bits(exposures: Sequence[Exposure], config: BuildConfig) -> None:
+    """Refuse exposures that do not define every required bad-mask bit by name.
+
+    Raises
+    ------
+    InputError
+        Naming the exposure and the missing bits (list them in
+        ``BuildConfig.optional_mask_bits`` if the exposure really has no such pixels).
+    """
+    required = config.required_mask_bits()
+    for exposure in exposures:
+        missing = [name for name in required if name not in exposure.mask_bits.bits]
+        if missing:
+            raise InputError(
+                f"exposure (visit={exposure.visit}, detector={exposure.detector}) does not "
+                f"define the mask bits {missing} named in bad_mask_bits (it defines "
+                f"{sorted(exposure.mask_bits.bits)}); map its bit names, or list them in "
+                "BuildConfig.optional_mask_bits"
+            )
+
+
 def check_unique_inputs(exposures: Sequence[Exposure]) -> None:
     """Refuse duplicate ``(visit, detector)`` pairs (they would be coadded twice)."""
     seen: set[tuple[int, int]] = set()
@@ -161,7 +178,8 @@ def build_cell(
         Seed of the noise realizations (non-negative); with the same seed and inputs the
         result is bit-identical, in any process.
     mask_bits : MaskBits
-        Bit definitions of the output mask (default: those of the first exposure).
+        Bit definitions of the output mask; every exposure's bits are translated into it
+        by name (default: :meth:`MaskBits.union` of the exposures' maps).
     band : str, optional
         The band of the coadd (default: that of the first exposure); exposures of another
         band are rejected with status ``band_mismatch``.
@@ -177,7 +195,8 @@ def build_cell(
     check_unique_inputs(exposures)
     if config.psf_size > min(cell.outer_bbox.shape):
         raise ValueError(f"psf_size {config.psf_size} exceeds the cell outer box {cell.outer_bbox}")
-    mask_bits = mask_bits or (exposures[0].mask_bits if exposures else MaskBits())
+    check_mask_bits(exposures, config)
+    mask_bits = mask_bits or MaskBits.union(exposure.mask_bits for exposure in exposures)
     shape = cell.outer_bbox.shape
     sums = _Sums(shape, config.n_noise, config.psf_size)
     records: list[InputRecord] = []
@@ -195,6 +214,14 @@ def build_cell(
         if isinstance(found, Rejection):
             records.append(_record(exposure, found.status, overlap_fraction=found.overlap_fraction))
             continue
+        pixels = exposure_planes(found, config, seed, bad_bits)
+        if pixels is None:  # a hole too large to interpolate
+            records.append(
+                _record(
+                    exposure, InputStatus.MASKED_FRACTION, overlap_fraction=found.overlap_fraction
+                )
+            )
+            continue
         try:
             psf_stamp = _coadd_psf_contribution(cell, found, config.psf_size)
         except PsfError:
@@ -202,7 +229,8 @@ def build_cell(
                 _record(exposure, InputStatus.BAD_PSF, overlap_fraction=found.overlap_fraction)
             )
             continue
-        _add_exposure(sums, found, psf_stamp, config, seed)
+        mask = translated_mask(exposure, found.footprint, mask_bits)
+        _add_exposure(sums, found, pixels, mask, psf_stamp, config.n_noise)
         moments = psf_moments(psf_stamp, cell_jacobian)
         records.append(
             _record(
@@ -255,4 +283,4 @@ def _finish(
     )
 
 
-__all__ = ["build_cell", "check_unique_inputs"]
+__all__ = ["build_cell", "check_mask_bits", "check_unique_inputs"]

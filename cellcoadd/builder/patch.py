@@ -26,7 +26,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
-from cellcoadd.builder.cell import build_cell, check_unique_inputs
+from cellcoadd.builder.cell import build_cell, check_mask_bits, check_unique_inputs
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.select import exposures_near_cells, rough_exposure_box
 from cellcoadd.errors import CellBuildError
@@ -265,7 +265,8 @@ def build_patch(
         check_band_name(bands[0])
     except ValueError as err:
         raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
-    mask_bits = exposures[0].mask_bits
+    check_mask_bits(exposures, config)  # before any work
+    mask_bits = MaskBits.union(exposure.mask_bits for exposure in exposures)
     cells = patch.cells
     near = exposures_near_cells(cells, exposures)
     client = pool = None

@@ -22,11 +22,22 @@ class BuildConfig(BaseModel):
         An exposure whose masked fraction inside the cell's outer box exceeds this is
         rejected for the cell (reason ``"masked_fraction"``).
     bad_mask_bits : list of str
-        Names of the exposure mask bits that count as masked (their pixels get no weight).
+        Names of the exposure mask bits that count as bad: those pixels are interpolated
+        from their good neighbours before the warp (image, noise and variance alike) and
+        counted in ``mfrac``. Every exposure must define every name here, unless the name
+        is also in ``optional_mask_bits``.
+    optional_mask_bits : list of str
+        Names in ``bad_mask_bits`` that an exposure may leave undefined (then none of its
+        pixels has that bit).
     zero_point : float
         Common photometric zero point, mag, to which every input is scaled.
     mapping_tolerance : float
         Maximum error, pixels, allowed of the approximated cell -> exposure pixel mapping.
+    noise_variance : "background" or "pixel"
+        Variance of the noise realizations: each exposure's background variance (the
+        median of its variance plane over the valid pixels, the same value that sets its
+        weight), so they carry no image of the sources even where the variance plane
+        includes the sources' Poisson noise; or ``"pixel"``, each pixel's own variance.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -36,8 +47,14 @@ class BuildConfig(BaseModel):
     kernel: Literal["lanczos3"] = "lanczos3"
     max_mask_fraction: float = Field(0.1, ge=0.0, le=1.0)
     bad_mask_bits: tuple[str, ...] = ("BAD", "SAT", "CR", "NO_DATA", "EDGE")
+    optional_mask_bits: tuple[str, ...] = ()
     zero_point: float = Field(30.0, gt=-50.0, lt=100.0, description="mag")
     mapping_tolerance: float = Field(1e-3, gt=0.0, le=0.1, description="pixels")
+    noise_variance: Literal["background", "pixel"] = "background"
+
+    def required_mask_bits(self) -> tuple[str, ...]:
+        """The names of ``bad_mask_bits`` every exposure must define."""
+        return tuple(n for n in self.bad_mask_bits if n not in self.optional_mask_bits)
 
     @field_validator("psf_size")
     @classmethod

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import galsim
 import numpy as np
@@ -148,7 +149,7 @@ class Exposure:
     def shape(self) -> tuple[int, int]:
         return self.image.shape  # type: ignore[return-value]
 
-    @property
+    @cached_property
     def background_variance(self) -> float:
         """Median variance over the valid pixels (counts^2): the basis of the coadd weight.
 

@@ -19,6 +19,18 @@ DEFAULT_BITS: dict[str, int] = {
 }
 
 
+#: Bits of the int32 mask plane that can carry a name (0 to 30).
+MAX_BITS = 31
+
+
+def _lowest_free(bits: dict[str, int]) -> int:
+    used = set(bits.values())
+    for bit in range(MAX_BITS):
+        if bit not in used:
+            return bit
+    raise ValueError(f"more than {MAX_BITS} mask bit names: {sorted(bits)}")
+
+
 class MaskBits(BaseModel):
     """Mapping of mask-bit names to bit numbers (0 to 30; the plane is int32).
 
@@ -69,6 +81,56 @@ class MaskBits(BaseModel):
     def names(self, value: int) -> list[str]:
         """Names of the bits set in ``value``, in bit order."""
         return [n for n, b in sorted(self.bits.items(), key=lambda kv: kv[1]) if value >> b & 1]
+
+    def translation_to(self, target: MaskBits) -> np.ndarray | None:
+        """Per bit of this map, the value of the same-named bit in ``target``.
+
+        Returns
+        -------
+        ndarray of int64, shape (31,), or None
+            ``out[b] = 1 << target.bits[name]`` for each ``name`` defined here on bit
+            ``b``, 0 for unused bits; None when the numbering is the same (no translation).
+
+        Raises
+        ------
+        KeyError
+            If ``target`` lacks one of this map's names.
+        """
+        missing = sorted(set(self.bits) - set(target.bits))
+        if missing:
+            raise KeyError(f"mask bits {missing} have no place in {sorted(target.bits)}")
+        if all(target.bits[name] == bit for name, bit in self.bits.items()):
+            return None
+        out = np.zeros(MAX_BITS, dtype=np.int64)
+        for name, bit in self.bits.items():
+            out[bit] = 1 << target.bits[name]
+        return out
+
+    @classmethod
+    def union(cls, maps: Iterable[MaskBits], required: Iterable[str] = ("NO_DATA",)) -> MaskBits:
+        """One map holding every name of ``maps`` (and ``required``), by name.
+
+        The first map keeps its numbering; a later name takes its own bit number when
+        that is free, else the lowest free bit; ``required`` names missing from all maps
+        are added last (default numbering when free). The result depends only on the
+        order of ``maps``.
+
+        Raises
+        ------
+        ValueError
+            If more than 31 distinct names are needed.
+        """
+        bits: dict[str, int] = {}
+        for mask_bits in maps:
+            for name, bit in mask_bits.bits.items():
+                if name not in bits:
+                    bits[name] = bit if bit not in bits.values() else _lowest_free(bits)
+        for name in required:
+            if name not in bits:
+                preferred = DEFAULT_BITS.get(name, -1)
+                free = preferred >= 0 and preferred not in bits.values()
+                bits[name] = preferred if free else _lowest_free(bits)
+        return cls(bits=bits)
 
     def unknown_bits(self, mask: np.ndarray) -> int:
         """OR of the bits set anywhere in ``mask`` that have no name here (0 if none)."""

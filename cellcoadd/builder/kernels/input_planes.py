@@ -70,6 +70,7 @@ def _fill(
     is_scalar: bool,
     bad: np.ndarray,
     flux_scale: float,
+    noise_variance: float,
     x_start: int,
     y_start: int,
     first: np.ndarray,
@@ -94,7 +95,8 @@ def _fill(
                     pixels[row, col, n_noise + 2] = 1.0
                 continue
             pixel_variance = scalar_variance if is_scalar else variance[row, col]
-            sigma = math.sqrt(pixel_variance)
+            # noise from the background variance, or from the pixel's own (<= 0)
+            sigma = math.sqrt(noise_variance if noise_variance > 0.0 else pixel_variance)
             pixels[row, col, 0] = image[row, col] * flux_scale
             for realization in range(n_noise):
                 normal = normal_from_word(
@@ -114,11 +116,12 @@ def input_planes(
     variance: np.ndarray | float,
     bad: np.ndarray,
     box: Box,
-    x: np.ndarray,
-    y: np.ndarray,
+    x: np.ndarray | None,
+    y: np.ndarray | None,
     flux_scale: float,
     n_noise: int,
     noise_seed: tuple[int, int, int],
+    noise_variance: float = 0.0,
 ) -> np.ndarray:
     """The planes to warp over ``box``, interleaved: shape ``(ny, nx, P)``, float64.
 
@@ -132,32 +135,39 @@ def input_planes(
         Pixels with a bad mask bit.
     box : Box
         The exposure pixels the arrays cover (its starts key the noise).
-    x, y : ndarray, float64
+    x, y : ndarray, float64, or None
         Exposure pixel positions the kernel will be evaluated at; only the pixels their
-        Lanczos-3 taps reach are filled.
+        Lanczos-3 taps reach are filled. None: every pixel of ``box`` is filled.
     flux_scale : float
         Factor from exposure counts to counts at the common zero point.
     n_noise : int
         Number K of noise realizations.
     noise_seed : (seed, visit, detector)
         Key of the exposure's noise (see :func:`cellcoadd.builder.kernels.noise.noise_key`).
+    noise_variance : float
+        Variance (counts^2, before ``flux_scale``) of the noise realizations, e.g. the
+        background variance; 0 draws each pixel's noise with its own ``variance``.
 
     Returns
     -------
     ndarray
-        Planes: image, K noise realizations (unit normal x sqrt(variance), scaled),
+        Planes: image, K noise realizations (unit normal x sqrt(noise variance), scaled),
         variance x ``flux_scale**2`` and, if any pixel is bad, the bad-pixel indicator.
         Unread pixels and bad pixels are 0 (1 in the indicator where bad).
     """
     with_mfrac = bool(bad.any())
     pixels = np.zeros((*box.shape, n_noise + 2 + int(with_mfrac)))
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    y = np.ascontiguousarray(y, dtype=np.float64)
-    # empty ranges ([width, 0)) until some tap reaches a row
-    first = np.full(box.shape[0], box.shape[1], dtype=np.int64)
-    stop = np.zeros(box.shape[0], dtype=np.int64)
-    if x.size:
-        _read_spans(x, y, box.x_start, box.y_start, box.shape[1], first, stop)
+    if x is None or y is None:
+        first = np.zeros(box.shape[0], dtype=np.int64)
+        stop = np.full(box.shape[0], box.shape[1], dtype=np.int64)
+    else:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        y = np.ascontiguousarray(y, dtype=np.float64)
+        # empty ranges ([width, 0)) until some tap reaches a row
+        first = np.full(box.shape[0], box.shape[1], dtype=np.int64)
+        stop = np.zeros(box.shape[0], dtype=np.int64)
+        if x.size:
+            _read_spans(x, y, box.x_start, box.y_start, box.shape[1], first, stop)
     scalar = np.isscalar(variance)
     variance_plane = np.zeros((1, 1)) if scalar else variance
     key0, key1 = noise_key(*noise_seed)
@@ -169,6 +179,7 @@ def input_planes(
         scalar,
         bad,
         float(flux_scale),
+        float(noise_variance),
         box.x_start,
         box.y_start,
         first,
