@@ -35,6 +35,15 @@ _EXPORTS: dict[str, str] = {
     "InputRecord": "cellcoadd.model.inputs",
     "InputStatus": "cellcoadd.model.inputs",
     "MaskBits": "cellcoadd.model.maskbits",
+    "PsfModel": "cellcoadd.model.psf",
+    "GalSimPsf": "cellcoadd.model.psf",
+    "ImagePsf": "cellcoadd.model.psf",
+    "CallablePsf": "cellcoadd.model.psf",
+    "PsfexPsf": "cellcoadd.model.psf",
+    "PiffPsf": "cellcoadd.model.psf",
+    "PsfError": "cellcoadd.errors",
+    "InputError": "cellcoadd.errors",
+    "ConfigError": "cellcoadd.errors",
     "FORMAT_VERSION": "cellcoadd.model.patch_coadd",
     "PatchCoadd": "cellcoadd.model.patch_coadd",
     "PatchMetadata": "cellcoadd.model.patch_coadd",
@@ -58,21 +67,30 @@ _EXPORTS: dict[str, str] = {
 __all__ = [
     "Box",
     "BuildConfig",
+    "CallablePsf",
     "Cell",
     "CellBuildError",
     "CellCoadd",
     "CellCoaddError",
     "CellCoaddFormatError",
+    "ConfigError",
     "EmptyCellError",
     "Exposure",
     "ExposureError",
     "FORMAT_VERSION",
+    "GalSimPsf",
+    "ImagePsf",
+    "InputError",
     "InputRecord",
     "InputStatus",
     "MaskBits",
     "Patch",
     "PatchCoadd",
     "PatchMetadata",
+    "PiffPsf",
+    "PsfError",
+    "PsfModel",
+    "PsfexPsf",
     "SkyMap",
     "SkyMapConfig",
     "Tract",
@@ -117,8 +135,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         CellBuildError,
         CellCoaddError,
         CellCoaddFormatError,
+        ConfigError,
         EmptyCellError,
         ExposureError,
+        InputError,
+        PsfError,
     )
     from cellcoadd.geometry import (
         Box,
@@ -146,6 +167,14 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from cellcoadd.model.inputs import InputRecord, InputStatus
     from cellcoadd.model.maskbits import MaskBits
     from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
+    from cellcoadd.model.psf import (
+        CallablePsf,
+        GalSimPsf,
+        ImagePsf,
+        PiffPsf,
+        PsfexPsf,
+        PsfModel,
+    )
     from cellcoadd.pipelines import ValidationSettings, validate_shear
     from cellcoadd.plots import plot_patch_layout
     from cellcoadd.shear import measure_metacal, to_ngmix, to_observation
