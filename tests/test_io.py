@@ -26,7 +26,7 @@ from kill_writer import kill_mid_write
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.config import SkyMapConfig
-from cellcoadd.io import api, common, fits_format, hdf5_format
+from cellcoadd.io import api, fits_format, format_version, hdf5_format
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 
@@ -367,7 +367,7 @@ def test_format_versions(tmp_path, monkeypatch, patch, name):
 
         return payload
 
-    monkeypatch.setattr(common, "metadata_payload", payload_with("1.7", extra=True))
+    monkeypatch.setattr(format_version, "metadata_payload", payload_with("1.7", extra=True))
     api.write(patch, tmp_path / name)
     newer_minor = api.read(tmp_path / name)
     assert newer_minor.metadata.format_version == "1.7"
@@ -375,7 +375,7 @@ def test_format_versions(tmp_path, monkeypatch, patch, name):
         newer_minor.metadata.model_copy(update={"format_version": FORMAT_VERSION}) == patch.metadata
     )
     for version, extra, message in (("2.0", False, "major version 2"), ("1.0", True, "(?i)extra")):
-        monkeypatch.setattr(common, "metadata_payload", payload_with(version, extra))
+        monkeypatch.setattr(format_version, "metadata_payload", payload_with(version, extra))
         api.write(patch, tmp_path / name, overwrite=True)
         with pytest.raises(CellCoaddFormatError, match=message):
             api.read(tmp_path / name)

@@ -8,11 +8,18 @@ East to the left has ``du/dx > 0``.
 from __future__ import annotations
 
 import pickle
+from typing import TYPE_CHECKING
 
 import numpy as np
 from astropy.wcs import WCS
 
+if TYPE_CHECKING:
+    import galsim
+
 ARCSEC_PER_RADIAN = 180.0 / np.pi * 3600.0
+
+#: GalSim's sky frame has u pointing West; FITS intermediate coordinates point East.
+_U_TO_FITS = np.diag([-1.0, 1.0])
 
 
 def local_jacobian(wcs: WCS, x: float, y: float, step: float = 0.5) -> np.ndarray:
@@ -32,6 +39,35 @@ def local_jacobian(wcs: WCS, x: float, y: float, step: float = 0.5) -> np.ndarra
             [(v[1] - v[2]) / (2 * step), (v[3] - v[4]) / (2 * step)],
         ]
     )
+
+
+def jacobian_wcs(jacobian: np.ndarray) -> galsim.JacobianWCS:
+    """GalSim WCS of the local Jacobian ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (arcsec/px).
+
+    GalSim is imported here, so that importing this module stays cheap.
+    """
+    import galsim
+
+    return galsim.JacobianWCS(
+        float(jacobian[0, 0]), float(jacobian[0, 1]), float(jacobian[1, 0]), float(jacobian[1, 1])
+    )
+
+
+def tan_wcs(ra: float, dec: float, x: float, y: float, jacobian: np.ndarray) -> WCS:
+    """TAN WCS putting ``(ra, dec)`` (deg) at 0-based pixel ``(x, y)`` with ``jacobian``.
+
+    ``jacobian`` is ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` in arcsec/pixel (GalSim sky
+    frame); :func:`local_jacobian` of the result at ``(x, y)`` gives it back.
+    """
+    wcs = WCS(naxis=2)
+    wcs.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    wcs.wcs.crval = [ra % 360.0, dec]
+    wcs.wcs.crpix = [x + 1.0, y + 1.0]  # FITS pixels are 1-based
+    wcs.wcs.cd = _U_TO_FITS @ np.asarray(jacobian, dtype=float) / 3600.0
+    wcs.wcs.cunit = ["deg", "deg"]
+    wcs.wcs.radesys = "ICRS"
+    wcs.wcs.set()
+    return wcs
 
 
 def _tangent_basis(ra0: float, dec0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

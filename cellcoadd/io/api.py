@@ -1,13 +1,14 @@
 """Reading and writing patch coadds: one API for the FITS and HDF5 layouts.
 
 The layout follows the file name: ``.fits`` and ``.fits.fz`` (fitsio), ``.h5`` and
-``.hdf5`` (h5py). Writes are atomic: the file is written to a hidden temporary file in the
-target directory (``.<name>.tmp-<random>``), flushed to disk and renamed over the target,
-so readers see either the previous file or the complete new one. A process killed
-mid-write can leave such a temporary file behind; it is safe to delete. A write that does
-not fit on the disk is refused before it starts, and one that fills the disk midway raises
-``OSError(ENOSPC)`` naming the target and leaves no file behind (except that HDF5 2.0 may
-crash the process instead; see ``docs/reliability.md``).
+``.hdf5`` (h5py). Writes are atomic (:func:`cellcoadd.io.atomic.atomic_write`): the file is
+written to a hidden temporary file in the target directory (``.<name>.tmp-<random>``),
+flushed to disk and renamed over the target, so readers see either the previous file or
+the complete new one. A process killed mid-write can leave such a temporary file behind;
+it is safe to delete. A write that does not fit on the disk is refused before it starts,
+and one that fills the disk midway raises ``OSError(ENOSPC)`` naming the target and leaves
+no file behind (except that HDF5 2.0 may crash the process instead; see
+``docs/reliability.md``).
 
 Files are reproducible: the same patch gives byte-identical files (CFITSIO's time-stamped
 checksum comments are replaced by fixed ones; HDF5 objects carry no timestamps).
@@ -20,22 +21,19 @@ cellcoadd file of a supported major version.
 from __future__ import annotations
 
 import os
-import secrets
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
 
-from cellcoadd.io.common import (
-    CoaddFile,
-    check_free_space,
-    clear_cfitsio_messages,
-    disk_full_error,
-    reading_errors,
-)
+from cellcoadd.io.atomic import atomic_write, exists_error
+from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
+from cellcoadd.io.coadd_file import CoaddFile
+from cellcoadd.io.disk_space import check_free_space
 from cellcoadd.io.fits_checksums import stabilise_fits_checksums
 from cellcoadd.io.fits_format import FitsCoaddFile, check_fits_path, write_fits
 from cellcoadd.io.hdf5_format import Hdf5CoaddFile, write_hdf5
+from cellcoadd.io.read_checks import reading_errors
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 
@@ -119,31 +117,24 @@ def write(
     target = Path(os.fspath(path))
     layout = file_format(target)
     compress = _use_compression(str(target), compression)
-    if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
-    directory = target.parent
-    if not directory.is_dir():
-        raise FileNotFoundError(f"{directory}: no such directory")
-    temporary = directory / f".{target.name}.tmp-{secrets.token_hex(8)}"
-    if layout == "fits":
-        check_fits_path(str(temporary))
-    check_free_space(target, _estimated_size(patch_coadd))
-    try:
+
+    def prepare(temporary: Path) -> None:
+        if layout == "fits":
+            check_fits_path(str(temporary))
+        check_free_space(target, _estimated_size(patch_coadd))
+
+    def write_file(temporary: Path) -> None:
         _WRITERS[layout](patch_coadd, str(temporary), compress=compress)
         if layout == "fits":
             stabilise_fits_checksums(temporary)
-        _fsync_file(temporary)
-        _publish(temporary, target, overwrite=overwrite)
-    except BaseException as err:
-        full = disk_full_error(target, err) if isinstance(err, Exception) else None
-        temporary.unlink(missing_ok=True)
-        if layout == "fits":
-            clear_cfitsio_messages()
-        if full is not None:
-            raise full from err
-        raise
-    _fsync_directory(directory)
-    return target
+
+    return atomic_write(
+        target,
+        write_file,
+        overwrite=overwrite,
+        prepare=prepare,
+        on_failure=clear_cfitsio_messages if layout == "fits" else None,
+    )
 
 
 def _estimated_size(patch_coadd: PatchCoadd) -> int:
@@ -159,45 +150,6 @@ def _estimated_size(patch_coadd: PatchCoadd) -> int:
         total += sum(plane.nbytes for plane in planes) + 7 * per_plane
         total += 128 * len(cell.inputs) + 4096  # inputs table rows, identity JSON
     return total
-
-
-def _publish(temporary: Path, target: Path, *, overwrite: bool) -> None:
-    if overwrite:
-        os.replace(temporary, target)
-        return
-    # A hard link fails if the target appeared meanwhile, so nothing is clobbered.
-    try:
-        os.link(temporary, target)
-    except FileExistsError:
-        raise FileExistsError(f"{target} exists; pass overwrite=True to replace it") from None
-    except OSError:
-        if target.exists():
-            raise FileExistsError(f"{target} exists; pass overwrite=True to replace it") from None
-        os.replace(temporary, target)  # file systems without hard links
-        return
-    temporary.unlink()
-
-
-def _fsync_file(path: Path) -> None:
-    descriptor = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-
-
-def _fsync_directory(directory: Path) -> None:
-    # Makes the rename durable; not every platform can open a directory.
-    try:
-        descriptor = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
 
 
 def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
@@ -267,5 +219,5 @@ def convert(
     """Copy a patch file into another layout or compression, losslessly."""
     file_format(destination)  # fail on a bad name before reading anything
     if Path(os.fspath(destination)).exists() and not overwrite:
-        raise FileExistsError(f"{os.fspath(destination)} exists; pass overwrite=True to replace it")
+        raise exists_error(destination)
     return write(read(source), destination, compression=compression, overwrite=overwrite)

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -46,7 +45,9 @@ import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.common import check_free_space, clear_cfitsio_messages, disk_full_error
+from cellcoadd.io.atomic import atomic_write, exists_error
+from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
+from cellcoadd.io.disk_space import check_free_space
 from cellcoadd.io.exposure_psf import psf_payload, read_psf
 from cellcoadd.io.fits_checksums import (
     DATACRC_PLACEHOLDER,
@@ -67,13 +68,15 @@ def write_exposure(
     """Write ``exposure`` to the FITS file ``path`` atomically.
 
     The file is written to a temporary file in the same directory, flushed to disk and
-    renamed onto ``path``, so a reader never sees a partial file. The same exposure gives
-    a byte-identical file (the checksum cards carry fixed comments, not the time).
+    renamed onto ``path`` (:func:`cellcoadd.io.atomic.atomic_write`), so a reader never
+    sees a partial file, and an existing file is never replaced unless ``overwrite``. The
+    same exposure gives a byte-identical file (the checksum cards carry fixed comments, not
+    the time).
 
     Raises
     ------
     FileExistsError
-        When ``path`` exists and ``overwrite`` is false.
+        When ``path`` exists (or appears during the write) and ``overwrite`` is false.
     ExposureError
         When the PSF cannot be stored (its callable fails, returns something other than a
         GSObject, or gives non-finite or empty stamps); nothing is written.
@@ -82,7 +85,7 @@ def write_exposure(
     """
     target = Path(path)
     if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} exists; pass overwrite=True to replace it")
+        raise exists_error(target)
     header_wcs, wcs_exact = wcs_cards(exposure.wcs)
     try:
         psf_kind, psf_meta, psf_array = psf_payload(exposure)
@@ -130,7 +133,7 @@ def write_exposure(
     mask_keys.append(DATACRC_PLACEHOLDER)
     meta_bytes = np.frombuffer(json.dumps(meta, allow_nan=False).encode("utf-8"), np.uint8)
 
-    def write(fits_file: fitsio.FITS) -> None:
+    def write_hdus(fits_file: fitsio.FITS) -> None:
         fits_file.write(exposure.image, header=header_wcs + keys, extname="IMAGE")
         fits_file.write(exposure.mask, header=mask_keys, extname="MASK")
         if not scalar_variance:
@@ -144,8 +147,20 @@ def write_exposure(
     arrays = [exposure.image, exposure.mask, meta_bytes]
     arrays += [a for a in (psf_array, exposure.variance) if isinstance(a, np.ndarray)]
     needed = sum(a.nbytes for a in arrays) + 2880 * (8 + 2 * len(arrays))
-    _atomic_fits_write(target, write, needed)
-    return target
+
+    def write_file(temporary: Path) -> None:
+        # created by CFITSIO itself, so it gets the usual permissions (mkstemp would give 0600)
+        with fitsio.FITS(str(temporary), "rw", clobber=True) as fits_file:
+            write_hdus(fits_file)
+        stabilise_fits_checksums(temporary)
+
+    return atomic_write(
+        target,
+        write_file,
+        overwrite=overwrite,
+        prepare=lambda _: check_free_space(target, needed),
+        on_failure=clear_cfitsio_messages,
+    )
 
 
 def read_exposure(path: str | os.PathLike[str]) -> Exposure:
@@ -177,46 +192,6 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
 def _ascii(text: str) -> str:
     """A header-safe rendering of ``text`` (the exact value is kept in META)."""
     return text.encode("ascii", "backslashreplace").decode("ascii")
-
-
-def _atomic_fits_write(target: Path, write: Any, needed: int) -> None:
-    """Run ``write(fits)`` on a temporary file next to ``target``, then rename it.
-
-    ``needed`` is an upper estimate of the file size, checked against the free space
-    first; a disk that fills up midway gives ``OSError(ENOSPC)``. Either way no file is
-    left behind.
-    """
-    directory = target.parent if str(target.parent) else Path(".")
-    if not directory.is_dir():
-        raise FileNotFoundError(f"{directory}: no such directory")
-    # created by CFITSIO itself, so it gets the usual permissions (mkstemp would give 0600)
-    tmp_name = str(directory / f".{target.name}.tmp-{secrets.token_hex(8)}")
-    check_free_space(target, needed)
-    try:
-        with fitsio.FITS(tmp_name, "rw", clobber=True) as fits_file:
-            write(fits_file)
-        stabilise_fits_checksums(tmp_name)
-        with open(tmp_name, "rb") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, target)
-    except BaseException as err:
-        full = disk_full_error(target, err) if isinstance(err, Exception) else None
-        if os.path.exists(tmp_name):
-            os.remove(tmp_name)
-        clear_cfitsio_messages()
-        if full is not None:
-            raise full from err
-        raise
-    try:  # make the rename itself durable where the platform allows it
-        dir_fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(dir_fd)
-    except OSError:
-        pass
-    finally:
-        os.close(dir_fd)
 
 
 # -- reading helpers -----------------------------------------------------------------

@@ -18,7 +18,6 @@ are never compressed.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import fitsio
@@ -26,14 +25,25 @@ import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import common
+from cellcoadd.io import format_version
+from cellcoadd.io.cell_records import PLANES, cell_record_json, expected_shapes, parse_cell_record
+from cellcoadd.io.coadd_file import CoaddFile
 from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER, verify_hdu
+from cellcoadd.io.format_version import (
+    FILE_KIND,
+    MAX_METADATA_BYTES,
+    check_format_version,
+    decode_metadata,
+    sha256_hex,
+)
+from cellcoadd.io.inputs_table import inputs_from_array, inputs_to_array
+from cellcoadd.io.read_checks import check_path_readable, reading_errors
 from cellcoadd.model.cell_coadd import CellCoadd, wcs_to_record
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 
 _FLOAT_PLANES = ("image", "variance", "mfrac", "noise")
-_HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*common.PLANES, "inputs")}
+_HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*PLANES, "inputs")}
 _FIRST_CELL_HDU = 3
 _FITS_MAGIC = b"SIMPLE  ="
 
@@ -72,7 +82,8 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     :func:`cellcoadd.io.api.write` does); readers refuse the file before that.
     """
     check_fits_path(path)
-    payload, version = common.metadata_payload(patch.metadata)
+    # looked up on the module at each write, so tests can stand in for it
+    payload, version = format_version.metadata_payload(patch.metadata)
     indices = list(patch.cells)
     planes = _cell_planes(patch.metadata.n_noise)
     n_hdu = _FIRST_CELL_HDU + len(planes) * len(indices)
@@ -81,7 +92,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
         fits.write(
             None,
             header=[
-                {"name": "CCFORMAT", "value": common.FILE_KIND, "comment": "cellcoadd file kind"},
+                {"name": "CCFORMAT", "value": FILE_KIND, "comment": "cellcoadd file kind"},
                 {"name": "CCVERS", "value": version, "comment": "format version MAJOR.MINOR"},
                 {"name": "TRACT", "value": meta.tract, "comment": "tract number"},
                 {"name": "PATCH_X", "value": meta.patch[0], "comment": "patch index x"},
@@ -99,7 +110,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
             fits,
             np.frombuffer(payload, dtype=np.uint8),
             "METADATA",
-            [{"name": "METASHA", "value": common.sha256_hex(payload), "comment": "SHA-256"}],
+            [{"name": "METASHA", "value": sha256_hex(payload), "comment": "SHA-256"}],
         )
         fits.write(_index_table(patch, planes), extname="CELLINDEX", header=[DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
@@ -112,7 +123,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
 
 
 def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
-    records = [common.cell_record_json(cell) for cell in patch.cells.values()]
+    records = [cell_record_json(cell) for cell in patch.cells.values()]
     width = max([1, *(len(text) for text in records)])
     dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
     dtype += [(column, "<i4") for column in _HDU_COLUMNS.values()]
@@ -136,7 +147,7 @@ def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
         name = extname(cell.index, plane)
         plane_keys = [*keys, {"name": "PLANE", "value": plane}]
         if plane == "inputs":
-            fits.write(common.inputs_to_array(cell.inputs, ascii_only=True), extname=name)
+            fits.write(inputs_to_array(cell.inputs, ascii_only=True), extname=name)
             fits[-1].write_keys([*plane_keys, DATACRC_PLACEHOLDER])
             fits[-1].write_checksum()
             continue
@@ -179,14 +190,14 @@ def _write_image(
     hdu.write_checksum()
 
 
-class FitsCoaddFile(common.CoaddFile):
+class FitsCoaddFile(CoaddFile):
     """Lazy reader of the FITS layout (see the module docstring)."""
 
     format_name = "fits"
 
     def __init__(self, path: str, *, verify: bool = True) -> None:
         check_fits_path(path)
-        size = common.check_path_readable(path)
+        size = check_path_readable(path)
         # Kept open for the checksums: verify_hdu reads an HDU's bytes as stored.
         self._raw: Any = open(path, "rb")  # closed by close()
         self._fits: Any = None
@@ -197,7 +208,7 @@ class FitsCoaddFile(common.CoaddFile):
             self.verify = verify
             self._opened: dict[int, Any] = {}  # fitsio HDU objects by number
             self._n_hdu = 0
-            with common.reading_errors(path, "cannot open the FITS file"):
+            with reading_errors(path, "cannot open the FITS file"):
                 self._fits = fitsio.FITS(path)
             metadata, rows = self._read_header_part(path, size)
         except BaseException:
@@ -209,15 +220,15 @@ class FitsCoaddFile(common.CoaddFile):
     def _read_header_part(
         self, path: str, size: int
     ) -> tuple[PatchMetadata, dict[tuple[int, int], np.void]]:
-        with common.reading_errors(path, "reading the primary header"):
+        with reading_errors(path, "reading the primary header"):
             primary = self._hdu_at(0).read_header()
             kind = primary.get("CCFORMAT")
-            if kind != common.FILE_KIND:
+            if kind != FILE_KIND:
                 raise CellCoaddFormatError(
                     path, f"not a cellcoadd patch file (CCFORMAT = {kind!r})"
                 )
             version = str(primary.get("CCVERS"))
-            common.check_format_version(path, version)
+            check_format_version(path, version)
             n_hdu = int(primary["NHDU"])
             declared_size = primary.get("FILESIZE")
         self._n_hdu = n_hdu
@@ -231,17 +242,17 @@ class FitsCoaddFile(common.CoaddFile):
             self._check_last_hdu(n_hdu, size)
         self._verify_hdu(0, "PRIMARY")
         hdu = self._hdu(1, "METADATA")
-        with common.reading_errors(path, "reading the metadata"):
+        with reading_errors(path, "reading the metadata"):
             dims = hdu.get_dims()
-            if len(dims) != 1 or not 0 < dims[0] <= common.MAX_METADATA_BYTES:
+            if len(dims) != 1 or not 0 < dims[0] <= MAX_METADATA_BYTES:
                 raise ValueError(f"METADATA has dimensions {dims}")
             payload = hdu.read().astype(np.uint8, copy=False).tobytes()
             digest = hdu.read_header().get("METASHA")
-            if digest != common.sha256_hex(payload):
+            if digest != sha256_hex(payload):
                 raise CellCoaddFormatError(path, "metadata SHA-256 mismatch: corrupted metadata")
-            metadata = common.decode_metadata(path, payload, version)
+            metadata = decode_metadata(path, payload, version)
         hdu = self._hdu(2, "CELLINDEX")
-        with common.reading_errors(path, "reading the cell index"):
+        with reading_errors(path, "reading the cell index"):
             table = hdu.read()
             rows = {(int(r["CELL_X"]), int(r["CELL_Y"])): r for r in table}
             if len(rows) != len(table):
@@ -259,7 +270,7 @@ class FitsCoaddFile(common.CoaddFile):
             raise CellCoaddFormatError(
                 self.path, f"the file has fewer HDUs than the {n_hdu} its header says: truncated?"
             ) from None
-        with common.reading_errors(self.path, "checking the file length"):
+        with reading_errors(self.path, "checking the file length"):
             end = last.get_offsets()["data_end"]
         if end != size:
             raise CellCoaddFormatError(
@@ -276,7 +287,7 @@ class FitsCoaddFile(common.CoaddFile):
         """
         hdu = self._opened.get(number)
         if hdu is None:
-            with common.reading_errors(self.path, f"reading HDU {number}"):
+            with reading_errors(self.path, f"reading HDU {number}"):
                 kind = self._fits.movabs_ext(number)
                 hdu_class = {
                     fitsio.IMAGE_HDU: ImageHDU,
@@ -295,7 +306,7 @@ class FitsCoaddFile(common.CoaddFile):
         if not 0 <= number < self._n_hdu:
             raise CellCoaddFormatError(self.path, f"HDU {name} (number {number}) is missing")
         hdu = self._hdu_at(number)
-        with common.reading_errors(self.path, f"reading HDU {number} ({name})"):
+        with reading_errors(self.path, f"reading HDU {number} ({name})"):
             found = hdu.get_extname()
         if found != name:
             raise CellCoaddFormatError(self.path, f"HDU {number} is {found!r}, expected {name!r}")
@@ -305,7 +316,7 @@ class FitsCoaddFile(common.CoaddFile):
     def _verify_hdu(self, number: int, name: str) -> None:
         if not self.verify:
             return
-        with common.reading_errors(self.path, f"checksum of HDU {number} {name}".rstrip()):
+        with reading_errors(self.path, f"checksum of HDU {number} {name}".rstrip()):
             verify_hdu(self._raw, self._hdu_at(number).get_offsets())
 
     def _row(self, index: tuple[int, int]) -> tuple[tuple[int, int], np.void]:
@@ -314,31 +325,31 @@ class FitsCoaddFile(common.CoaddFile):
 
     def read_cell(self, index: tuple[int, int]) -> CellCoadd:
         key, row = self._row(index)
-        with common.reading_errors(self.path, f"cell {key} identity"):
-            identity = common.parse_cell_record(row["CELL"])
+        with reading_errors(self.path, f"cell {key} identity"):
+            identity = parse_cell_record(row["CELL"])
         if identity["index"] != key or identity["tract"] != self.metadata.tract:
             raise CellCoaddFormatError(
                 self.path,
                 f"cell index row {key} describes cell {identity['index']} of tract "
                 f"{identity['tract']}",
             )
-        shapes = common.expected_shapes(self.metadata, identity["outer_bbox"])
+        shapes = expected_shapes(self.metadata, identity["outer_bbox"])
         planes = {}
-        for plane in common.PLANES:
+        for plane in PLANES:
             number = int(row[_HDU_COLUMNS[plane]])
             if plane == "noise" and self.metadata.n_noise == 0 and number == -1:
                 planes[plane] = np.zeros(shapes["noise"], dtype=np.float32)
                 continue
             planes[plane] = self._read_plane(key, plane, number, shapes[plane])
         inputs = self._read_inputs_hdu(key, int(row[_HDU_COLUMNS["inputs"]]))
-        with common.reading_errors(self.path, f"cell {key} contents"):
+        with reading_errors(self.path, f"cell {key} contents"):
             return CellCoadd(**planes, inputs=inputs, **identity)
 
     def _read_plane(
         self, key: tuple[int, int], plane: str, number: int, shape: tuple[int, ...]
     ) -> np.ndarray:
         hdu = self._hdu(number, extname(key, plane))
-        with common.reading_errors(self.path, f"cell {key} plane {plane}"):
+        with reading_errors(self.path, f"cell {key} plane {plane}"):
             dims = tuple(hdu.get_dims())
             if dims != shape:
                 raise ValueError(f"dimensions {dims}, expected {shape}")
@@ -356,8 +367,8 @@ class FitsCoaddFile(common.CoaddFile):
 
     def _read_inputs_hdu(self, key: tuple[int, int], number: int) -> list[InputRecord]:
         hdu = self._hdu(number, extname(key, "inputs"))
-        with common.reading_errors(self.path, f"cell {key} inputs"):
-            return common.inputs_from_array(hdu.read(), ascii_only=True)
+        with reading_errors(self.path, f"cell {key} inputs"):
+            return inputs_from_array(hdu.read(), ascii_only=True)
 
     def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:
         key, row = self._row(index)
@@ -373,8 +384,3 @@ class FitsCoaddFile(common.CoaddFile):
         if raw is not None:
             raw.close()
             self._raw = None
-
-
-def open_fits(path: str | os.PathLike[str], *, verify: bool = True) -> FitsCoaddFile:
-    """Open a FITS patch file lazily."""
-    return FitsCoaddFile(os.fspath(path), verify=verify)

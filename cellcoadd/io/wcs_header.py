@@ -3,10 +3,12 @@
 cfitsio writes floating-point header values with 15 significant digits, which is not
 enough to round-trip float64 (nor a WCS to 1e-9 pixel). The writer therefore returns,
 next to the header cards, the exact float64 values of every floating-point WCS keyword
-(CRPIXi, CRVALi, CDELTi, PCi_j, LONPOLE, LATPOLE and the SIP coefficients ``A_p_q``,
-``B_p_q``, ``AP_p_q``, ``BP_p_q``), stored by the caller elsewhere (JSON). The reader parses
-the header, checks each rounded value against its exact one (relative tolerance
-:data:`HEADER_RTOL`) and sets the exact values on the parsed WCS.
+(:func:`~cellcoadd.model.cell_coadd.wcs_exact_keywords`: CRPIXi, CRVALi, CDELTi, PCi_j,
+LONPOLE, LATPOLE and the SIP coefficients ``A_p_q``, ``B_p_q``, ``AP_p_q``, ``BP_p_q``),
+stored by the caller elsewhere (JSON). The reader parses the header, checks each rounded
+value against its exact one (relative tolerance :data:`HEADER_RTOL`) and sets the exact
+values on the parsed WCS. The exact encoding itself is the model's WCS codec
+(:mod:`cellcoadd.model.cell_coadd`); this module only adds the FITS header around it.
 """
 
 from __future__ import annotations
@@ -15,11 +17,11 @@ import warnings
 from typing import Any
 
 import fitsio
-import numpy as np
 from astropy.io import fits
-from astropy.wcs import WCS, Sip
+from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.model.cell_coadd import apply_wcs_exact_keywords, wcs_exact_keywords, wcs_header
 
 #: Relative agreement required between a header float (15 digits) and its exact value.
 HEADER_RTOL = 1e-13
@@ -57,8 +59,8 @@ def wcs_cards(wcs: WCS) -> tuple[list[dict[str, Any]], dict[str, float]]:
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        header = wcs.to_header(relax=True)
-    exact = _exact_wcs_values(wcs)
+        header = wcs_header(wcs)
+    exact = wcs_exact_keywords(wcs)
     cards = []
     for card in header.cards:
         value = card.value
@@ -67,28 +69,6 @@ def wcs_cards(wcs: WCS) -> tuple[list[dict[str, Any]], dict[str, float]]:
         cards.append({"name": card.keyword, "value": value, "comment": card.comment})
     exact = {k: v for k, v in exact.items() if k in header}
     return cards, exact
-
-
-def _exact_wcs_values(wcs: WCS) -> dict[str, float]:
-    """Exact float64 values of the WCS keywords ``to_header`` writes (rounded there)."""
-    core = wcs.wcs
-    pc = core.get_pc()
-    cdelt = core.get_cdelt()
-    values: dict[str, float] = {"LONPOLE": float(core.lonpole), "LATPOLE": float(core.latpole)}
-    for i in range(2):
-        values[f"CRPIX{i + 1}"] = float(core.crpix[i])
-        values[f"CRVAL{i + 1}"] = float(core.crval[i])
-        values[f"CDELT{i + 1}"] = float(cdelt[i])
-        for j in range(2):
-            values[f"PC{i + 1}_{j + 1}"] = float(pc[i, j])
-    sip = wcs.sip
-    if sip is not None:
-        for prefix, coeffs in (("A", sip.a), ("B", sip.b), ("AP", sip.ap), ("BP", sip.bp)):
-            if coeffs is None:
-                continue
-            for p, q in zip(*np.nonzero(coeffs), strict=True):
-                values[f"{prefix}_{p}_{q}"] = float(coeffs[p, q])
-    return values
 
 
 def read_wcs(header: fitsio.FITSHDR, exact: dict[str, Any]) -> WCS:
@@ -113,34 +93,5 @@ def read_wcs(header: fitsio.FITSHDR, exact: dict[str, Any]) -> WCS:
         raise _fail("the IMAGE header holds no celestial WCS")
     # astropy re-renders header floats with at most 20 characters when it builds the WCS,
     # so the exact values are set on the parsed WCS itself
-    _apply_exact_wcs_values(wcs, values)
+    apply_wcs_exact_keywords(wcs, values)
     return wcs
-
-
-def _apply_exact_wcs_values(wcs: WCS, values: dict[str, float]) -> None:
-    """Inverse of :func:`_exact_wcs_values` on a WCS parsed from the rounded header."""
-    core = wcs.wcs
-    crpix, crval = core.crpix.copy(), core.crval.copy()
-    cdelt, pc = core.get_cdelt().copy(), core.get_pc().copy()
-    for i in range(2):
-        crpix[i] = values.get(f"CRPIX{i + 1}", crpix[i])
-        crval[i] = values.get(f"CRVAL{i + 1}", crval[i])
-        cdelt[i] = values.get(f"CDELT{i + 1}", cdelt[i])
-        for j in range(2):
-            pc[i, j] = values.get(f"PC{i + 1}_{j + 1}", pc[i, j])
-    core.crpix, core.crval, core.cdelt, core.pc = crpix, crval, cdelt, pc
-    core.lonpole = values.get("LONPOLE", core.lonpole)
-    core.latpole = values.get("LATPOLE", core.latpole)
-    sip = wcs.sip
-    if sip is not None:
-        coeffs = {}
-        for prefix, array in (("A", sip.a), ("B", sip.b), ("AP", sip.ap), ("BP", sip.bp)):
-            if array is None:
-                coeffs[prefix] = None
-                continue
-            array = array.copy()
-            for p, q in zip(*np.nonzero(array), strict=True):
-                array[p, q] = values.get(f"{prefix}_{p}_{q}", array[p, q])
-            coeffs[prefix] = array
-        wcs.sip = Sip(coeffs["A"], coeffs["B"], coeffs["AP"], coeffs["BP"], crpix)
-    core.set()

@@ -48,6 +48,7 @@ import galsim
 import numpy as np
 
 from cellcoadd.errors import MetacalError
+from cellcoadd.geometry.wcs_utils import jacobian_wcs
 from cellcoadd.shear.shapes import MetacalFlags, empty_record, measure_shape, psf_T
 
 __all__ = [
@@ -122,7 +123,7 @@ def _galsim_wcs(jacobian: np.ndarray) -> galsim.JacobianWCS:
     jac = np.asarray(jacobian, dtype=np.float64)
     if jac.shape != (2, 2) or not np.all(np.isfinite(jac)) or np.linalg.det(jac) == 0.0:
         raise MetacalError(f"jacobian must be a finite non-singular 2x2 array, got {jac!r}")
-    return galsim.JacobianWCS(jac[0, 0], jac[0, 1], jac[1, 0], jac[1, 1])
+    return jacobian_wcs(jac)
 
 
 def _check_psf_image(psf_image: np.ndarray) -> np.ndarray:

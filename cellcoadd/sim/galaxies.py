@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
+from cellcoadd.geometry.wcs_utils import jacobian_wcs
 from cellcoadd.sim.config import GalaxyConfig
 
 #: A user-supplied population: ``sampler(rng, n) -> (mag, hlr)`` arrays (mag at the
@@ -135,13 +136,6 @@ def exponential_galaxy(
     if g1 != 0.0 or g2 != 0.0:
         profile = profile.shear(g1=float(g1), g2=float(g2))
     return profile
-
-
-def jacobian_wcs(jacobian: np.ndarray) -> galsim.JacobianWCS:
-    """GalSim WCS of the local Jacobian ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (arcsec/px)."""
-    return galsim.JacobianWCS(
-        float(jacobian[0, 0]), float(jacobian[0, 1]), float(jacobian[1, 0]), float(jacobian[1, 1])
-    )
 
 
 def draw_source(
