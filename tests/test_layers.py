@@ -92,3 +92,15 @@ def test_no_private_names_cross_modules():
                 private = [a.name for a in node.names if a.name.startswith("_")]
                 private = [n for n in private if not n.startswith("__")]
                 assert not private, f"{path}:{node.lineno}: imports {private} from {node.module}"
+
+
+SIM = sorted((PACKAGE / "sim").glob("*.py"))
+
+
+@pytest.mark.parametrize("path", SIM, ids=[p.name for p in SIM])
+def test_sim_does_no_file_io(path):
+    """Simulations return in-memory results; writing them is the callers' job."""
+    for module, line in _imported_modules(path):
+        assert module != "cellcoadd.io" and not module.startswith("cellcoadd.io."), (
+            f"{path}:{line}: sim imports {module}"
+        )

@@ -18,14 +18,14 @@ from cellcoadd.analysis import (
     depth_loss_mag,
     hexagon_offsets,
     lsst_focal_plane,
-    plot_rejection,
     rejection_statistics,
     rejection_survey,
     rejection_table,
     spiral_offsets,
 )
-from cellcoadd.analysis.dither import in_hexagon
 from cellcoadd.cli.analyze import analyze
+from cellcoadd.plots import plot_rejection
+from cellcoadd.sim.dither import in_hexagon
 
 LSST = lsst_focal_plane()
 ARCSEC_PER_MM = 20.0  # 0.2"/px over 10 micron pixels

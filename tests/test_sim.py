@@ -17,6 +17,7 @@ from cellcoadd.geometry import SkyMap
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.io.exposure_io import read_exposure
 from cellcoadd.model.psf_profiles import VaryingPsf
+from cellcoadd.pipelines.simulation_files import write_field_simulation
 from cellcoadd.sim import (
     DEMO_PATCH,
     FieldConfig,
@@ -333,7 +334,7 @@ def test_field_is_deterministic_and_dither_patterns(field_run):
 
 def test_field_write(field_run, tmp_path):
     small = simulate_field(SimConfig(), demo_skymap(), 0, DEMO_PATCH, 1, seed=21)
-    paths = small.write(tmp_path)
+    paths = write_field_simulation(small, tmp_path)
     assert (tmp_path / "visit0000-det04.fits").exists() and len(paths) == 9 + 4
     back = read_exposure(tmp_path / "visit0000-det04.fits")
     np.testing.assert_array_equal(back.image, small.exposures[4].image)
@@ -342,7 +343,7 @@ def test_field_write(field_run, tmp_path):
     description = json.loads((tmp_path / "simulation.json").read_text())
     assert description["patch"] == list(DEMO_PATCH) and description["seed"] == 21
     with pytest.raises(FileExistsError):
-        small.write(tmp_path)
+        write_field_simulation(small, tmp_path)
 
 
 def test_config_validation():

@@ -18,13 +18,13 @@ from cellcoadd.analysis import (
     gaussian_templates,
     lsst_snr_loss,
     monte_carlo_ratio,
-    plot_snr_loss,
     toy_variance_ratio,
     variance_coadd,
     variance_multi,
 )
 from cellcoadd.analysis.gaussian_epochs import FWHM_PER_SIGMA, galaxy_sigma
 from cellcoadd.cli.analyze import analyze
+from cellcoadd.plots import plot_snr_loss
 
 
 def _random_problem(seed: int, n_epochs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -4,19 +4,12 @@
   multi-epoch fit (exact eqs. A5 / A7, toy eq. 10, Monte Carlo of Fig. 4).
 - :mod:`~cellcoadd.analysis.rejection`: visits rejected because a detector edge crosses a
   cell, and the depth lost (section 5.2, Fig. 6), on the focal planes of
-  :mod:`~cellcoadd.analysis.focal_plane` with the dithers of :mod:`~cellcoadd.analysis.dither`.
-- :mod:`~cellcoadd.analysis.plotting`: the corresponding PNG figures.
+  :mod:`~cellcoadd.sim.focal_plane` with the dithers of :mod:`~cellcoadd.sim.dither`
+  (re-exported here).
+
+The corresponding PNG figures are drawn by :mod:`cellcoadd.plots.analysis`.
 """
 
-from cellcoadd.analysis.dither import dither_offsets, hexagon_offsets, spiral_offsets
-from cellcoadd.analysis.focal_plane import (
-    Detector,
-    DetectorLocator,
-    FocalPlaneConfig,
-    decam_like_focal_plane,
-    lsst_focal_plane,
-)
-from cellcoadd.analysis.plotting import plot_rejection, plot_snr_loss
 from cellcoadd.analysis.rejection import (
     PAPER_CELL_SIZES_ARCMIN,
     PAPER_REJECTED_RANGE,
@@ -42,6 +35,14 @@ from cellcoadd.analysis.snr_loss import (
     variance_coadd,
     variance_multi,
 )
+from cellcoadd.sim.dither import dither_offsets, hexagon_offsets, spiral_offsets
+from cellcoadd.sim.focal_plane import (
+    Detector,
+    DetectorLocator,
+    FocalPlaneConfig,
+    decam_like_focal_plane,
+    lsst_focal_plane,
+)
 
 __all__ = [
     "PAPER_CELL_SIZES_ARCMIN",
@@ -66,8 +67,6 @@ __all__ = [
     "lsst_focal_plane",
     "lsst_snr_loss",
     "monte_carlo_ratio",
-    "plot_rejection",
-    "plot_snr_loss",
     "rejection_statistics",
     "rejection_survey",
     "rejection_table",

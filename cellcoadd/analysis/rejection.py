@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.analysis.dither import DitherPattern, RotationMode, dither_offsets, visit_rotations
-from cellcoadd.analysis.focal_plane import FocalPlaneConfig, lsst_focal_plane
 from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.sim.dither import DitherPattern, RotationMode, dither_offsets, visit_rotations
+from cellcoadd.sim.focal_plane import FocalPlaneConfig, lsst_focal_plane
 
 #: Cell sides studied in the paper's Fig. 6, arcmin.
 PAPER_CELL_SIZES_ARCMIN: tuple[float, ...] = (0.1, 0.5, 0.8)
@@ -242,7 +242,7 @@ def rejection_statistics(
     n_visits : int
         Number of visits (pointings) of the field.
     dither : "random" or "spiral"
-        Dither pattern (see :mod:`cellcoadd.analysis.dither`).
+        Dither pattern inside the hexagon (see :mod:`cellcoadd.sim.dither`).
     seed : int
         Seed of the run.
     focal_plane : FocalPlaneConfig, optional
@@ -268,7 +268,7 @@ def rejection_statistics(
     radius = 3600.0 * cell_region_radius_deg * np.sqrt(cell_stream.uniform(size=n_cells))
     phase = cell_stream.uniform(0.0, 2.0 * np.pi, n_cells)
     centres = np.column_stack([radius * np.cos(phase), radius * np.sin(phase)])
-    offsets = dither_offsets(dither, n_visits, dither_radius, dither_stream)
+    offsets = dither_offsets(dither, n_visits, dither_radius, dither_stream, region="hexagon")
     angles = visit_rotations(n_visits, rotation, rotation_stream)
     covered, contained = classify_cells(
         focal_plane, centres, 60.0 * cell_size_arcmin, offsets, angles

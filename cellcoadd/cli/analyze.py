@@ -13,8 +13,6 @@ from cellcoadd.analysis import (
     lsst_focal_plane,
     lsst_snr_loss,
     monte_carlo_ratio,
-    plot_rejection,
-    plot_snr_loss,
     rejection_survey,
     rejection_table,
 )
@@ -101,6 +99,8 @@ def rejection(
     else:
         click.echo(rejection_table(results))
     if out:
+        from cellcoadd.plots import plot_rejection  # matplotlib only when drawing
+
         click.echo(f"wrote {plot_rejection(results, out)}", err=as_json)
 
 
@@ -168,4 +168,6 @@ def snr_loss(
         ):
             click.echo(f"{r:6.2f} {exact:8.4f} {continuous:9.4f} {toy:8.4f} {noise:12.4f}")
     if out:
+        from cellcoadd.plots import plot_snr_loss  # matplotlib only when drawing
+
         click.echo(f"wrote {plot_snr_loss(table, out)}", err=as_json)

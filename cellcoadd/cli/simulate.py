@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option
+from cellcoadd.pipelines.simulation_files import write_field_simulation, write_stamps
 from cellcoadd.sim import (
     DEMO_PATCH,
     FieldConfig,
@@ -16,7 +17,6 @@ from cellcoadd.sim import (
     demo_skymap,
     simulate_field,
     simulate_object,
-    write_stamps,
 )
 
 #: radial SIP coefficient used by --sip: about 0.7 pixel at the corner of the default plane
@@ -120,7 +120,7 @@ def simulate(
             result = simulate_field(
                 config, skymap, tract_id, patch, visits, seed, progress=not quiet
             )
-            result.write(out, overwrite=overwrite)
+            write_field_simulation(result, out, overwrite=overwrite)
             message = (
                 f"wrote {len(result.exposures)} exposures ({visits} visits x "
                 f"{len(result.exposures) // visits} CCDs), {len(result.truth)} objects, "

@@ -22,7 +22,7 @@ from cellcoadd.geometry import flag_unique
 from cellcoadd.io import api as coadd_io
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
-from cellcoadd.plots import plot_cell_planes, plot_inputs_map, plot_patch_layout, plot_stitched
+from cellcoadd.pipelines.simulation_files import write_field_simulation
 from cellcoadd.shear import (
     PAPER_CUTS,
     mean_shear,
@@ -216,7 +216,7 @@ def run_demo(
     skymap = demo_skymap()
     config = SimConfig(field=FieldConfig(ccd_nx=ccd_pixels, ccd_ny=ccd_pixels))
     sim = simulate_field(config, skymap, 0, DEMO_PATCH, n_visits, seed, progress=progress)
-    sim.write(out, overwrite=True)
+    write_field_simulation(sim, out, overwrite=True)
     clock.lap("simulate")
     patch = skymap[0].patch(*DEMO_PATCH)
     coadd = build_patch(
@@ -238,6 +238,9 @@ def run_demo(
     clock.lap("trim")
     shear = _measure_shear(coadd, truth, skymap)
     clock.lap("shear")
+    # matplotlib is imported only here, when the figures are drawn
+    from cellcoadd.plots import plot_cell_planes, plot_inputs_map, plot_patch_layout, plot_stitched
+
     result.files["layout"] = Path(plot_patch_layout(patch, out / "layout.png"))
     result.files["stitched"] = Path(plot_stitched(coadd, out / "stitched.png"))
     result.files["cell"] = Path(

@@ -4,6 +4,12 @@
   10 epochs on 48 x 48 stamps at 0.27 arcsec/pixel (matched +g / -g pairs from one seed).
 * :func:`simulate_field`: galaxies and stars over a patch, observed by a small focal plane
   of CCDs with gaps, dithered visits, masks and noise.
+* :mod:`cellcoadd.sim.focal_plane` and :mod:`cellcoadd.sim.dither`: the focal planes
+  (the simulation's camera, LSST- and DECam-like layouts) and the dither patterns, also
+  used by the edge-rejection statistics of :mod:`cellcoadd.analysis`.
+
+Results stay in memory (:class:`~cellcoadd.model.exposure.Exposure` objects and truth
+tables); :mod:`cellcoadd.pipelines.simulation_files` writes them to files.
 
 All distributions are in :class:`SimConfig` (paper defaults); every random number comes
 from an explicitly seeded generator.
@@ -16,6 +22,7 @@ from cellcoadd.sim.config import (
     SimConfig,
     WcsVariationConfig,
 )
+from cellcoadd.sim.dither import dither_offsets
 from cellcoadd.sim.field import (
     DEMO_PATCH,
     DEMO_SKYMAP_CONFIG,
@@ -23,7 +30,7 @@ from cellcoadd.sim.field import (
     demo_skymap,
     simulate_field,
 )
-from cellcoadd.sim.focal_plane import Detector, FocalPlane, dither_offsets
+from cellcoadd.sim.focal_plane import Detector, FocalPlane
 from cellcoadd.sim.galaxies import (
     GalaxyProperties,
     draw_ellipticities,
@@ -41,7 +48,6 @@ from cellcoadd.sim.stamps import (
     simulate_stamps,
     stamps_truth_tables,
     tan_wcs,
-    write_stamps,
 )
 
 __all__ = [
@@ -74,5 +80,4 @@ __all__ = [
     "simulate_stamps",
     "stamps_truth_tables",
     "tan_wcs",
-    "write_stamps",
 ]

@@ -8,6 +8,8 @@ focal plane), noise level and zero point. Each CCD becomes one
 :class:`~cellcoadd.model.exposure.Exposure` with a TAN (optionally SIP) WCS, a mask with
 edge pixels, bad columns and cosmic rays, and Gaussian noise. Objects are drawn only into
 stamps around them (never full-CCD FFTs); outside the region a CCD holds noise only.
+Everything stays in memory; :func:`cellcoadd.pipelines.simulation_files.write_field_simulation`
+writes a :class:`FieldSimulation` to files.
 
 Random streams (all from ``numpy.random.SeedSequence``): ``[seed, 0]`` the catalogue,
 ``[seed, 1]`` the dithers, ``[seed, 2, visit]`` a visit's PSF, noise level, zero point and
@@ -16,11 +18,8 @@ rotation, ``[seed, 3, visit, detector]`` a CCD's noise and defects.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import dataclass, fields
-from pathlib import Path
 
 import galsim
 import numpy as np
@@ -29,12 +28,12 @@ from tqdm import tqdm
 
 from cellcoadd.geometry import Box, SkyMap, SkyMapConfig, Tract
 from cellcoadd.geometry.wcs_utils import local_jacobian
-from cellcoadd.io.exposure_io import write_exposure
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.sim.config import SimConfig
-from cellcoadd.sim.focal_plane import Detector, FocalPlane, dither_offsets, offset_position
+from cellcoadd.sim.dither import dither_offsets
+from cellcoadd.sim.focal_plane import Detector, FocalPlane, offset_position
 from cellcoadd.sim.galaxies import (
     GalaxySampler,
     draw_galaxy_properties,
@@ -86,35 +85,6 @@ class FieldSimulation:
     patch_index: tuple[int, int]
     config: SimConfig
     seed: int
-
-    def write(self, directory: str | os.PathLike[str], *, overwrite: bool = False) -> list[Path]:
-        """Write the exposures, ``skymap.json``, ``truth.fits``, ``visits.fits`` and
-        ``simulation.json`` (configuration, seed, tract, patch) into ``directory``.
-
-        Exposure files are ``visit{visit:04d}-det{detector:02d}.fits``. Returns the paths.
-        """
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = []
-        for exposure in self.exposures:
-            name = f"visit{exposure.visit:04d}-det{exposure.detector:02d}.fits"
-            paths.append(write_exposure(exposure, out / name, overwrite=overwrite))
-        for name, text in (
-            ("skymap.json", self.skymap.to_json()),
-            ("simulation.json", json.dumps(self.description(), indent=2) + "\n"),
-        ):
-            path = out / name
-            if path.exists() and not overwrite:
-                raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-            path.write_text(text)
-            paths.append(path)
-        for name, table in (("truth.fits", self.truth), ("visits.fits", self.visits)):
-            path = out / name
-            if path.exists() and not overwrite:
-                raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-            table.write(path, format="fits", overwrite=True)
-            paths.append(path)
-        return paths
 
     def description(self) -> dict:
         """JSON-able summary: seed, tract, patch, counts and the full configuration."""
@@ -175,7 +145,9 @@ def simulate_field(
         (box.x_start + box.x_stop - 1) / 2.0, (box.y_start + box.y_stop - 1) / 2.0
     )
     focal_plane = FocalPlane.from_config(config.field, config.pixel_scale)
-    offsets = dither_offsets(config.field, n_visits, _rng(seed, 1))
+    offsets = dither_offsets(
+        config.field.dither, n_visits, config.field.dither_radius, _rng(seed, 1), region="disk"
+    )
     boresight_ra, boresight_dec = offset_position(
         float(centre[0][0]), float(centre[1][0]), offsets[:, 0], offsets[:, 1]
     )
@@ -300,7 +272,7 @@ def _observe_ccd(
     base_psf = moffat_psf(visit.psf_fwhm, visit.psf_g1, visit.psf_g2, config.psf.beta)
     psf = focal_plane_psf(
         base_psf,
-        detector.boresight_pixel,
+        focal_plane.boresight_pixel(detector),
         focal_plane.corner_radius,
         field.psf_fwhm_edge,
         field.psf_g_edge,

@@ -13,21 +13,20 @@ shears are a matched pair (same galaxies, PSFs, shifts, WCSs and noise).
 Exposure identity: ``visit`` is the epoch number, ``detector`` the object index, so
 builders that seed noise realizations from ``(visit, detector)`` give different objects
 different noise and the two members of a pair the same.
+
+Everything stays in memory; :func:`cellcoadd.pipelines.simulation_files.write_stamps`
+writes the objects to files.
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import galsim
 import numpy as np
 from astropy.table import Table
-from astropy.wcs import WCS
 
-from cellcoadd.geometry.wcs_utils import local_jacobian
-from cellcoadd.io.exposure_io import write_exposure
+from cellcoadd.geometry.wcs_utils import local_jacobian, tan_wcs
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.sim.config import SimConfig, WcsVariationConfig
 from cellcoadd.sim.galaxies import (
@@ -38,9 +37,6 @@ from cellcoadd.sim.galaxies import (
     mag_to_flux,
 )
 from cellcoadd.sim.psf import draw_psf_parameters, psf_profiles
-
-#: GalSim's sky frame has u pointing West; FITS intermediate coordinates point East.
-_U_TO_FITS = np.diag([-1.0, 1.0])
 
 
 @dataclass(frozen=True)
@@ -155,24 +151,6 @@ def epoch_jacobians(
         distortion = np.array([[1.0 + eta1[k], eta2[k]], [eta2[k], 1.0 - eta1[k]]])
         out[k] = pixel_scale * scale[k] * rotation @ distortion
     return out
-
-
-def tan_wcs(ra: float, dec: float, x: float, y: float, jacobian: np.ndarray) -> WCS:
-    """TAN WCS putting ``(ra, dec)`` (deg) at 0-based pixel ``(x, y)`` with ``jacobian``.
-
-    ``jacobian`` is ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` in arcsec/pixel (GalSim sky
-    frame); :func:`cellcoadd.geometry.wcs_utils.local_jacobian` of the result at
-    ``(x, y)`` gives it back.
-    """
-    wcs = WCS(naxis=2)
-    wcs.wcs.ctype = ["RA---TAN", "DEC--TAN"]
-    wcs.wcs.crval = [ra % 360.0, dec]
-    wcs.wcs.crpix = [x + 1.0, y + 1.0]  # FITS pixels are 1-based
-    wcs.wcs.cd = _U_TO_FITS @ np.asarray(jacobian, dtype=float) / 3600.0
-    wcs.wcs.cunit = ["deg", "deg"]
-    wcs.wcs.radesys = "ICRS"
-    wcs.wcs.set()
-    return wcs
 
 
 def simulate_object(
@@ -340,32 +318,6 @@ def stamps_truth_tables(objects: list[StampObject]) -> tuple[Table, Table]:
         dtype=(np.int64, np.int64) + (np.float64,) * 12,
     )
     return objects_table, epochs_table
-
-
-def write_stamps(
-    objects: list[StampObject], directory: str | os.PathLike[str], *, overwrite: bool = False
-) -> list[Path]:
-    """Write ``object{index:05d}/epoch{epoch:02d}.fits`` exposures plus ``truth.fits`` and
-    ``epochs.fits`` (see :func:`stamps_truth_tables`) into ``directory``; returns the paths.
-    """
-    out = Path(directory)
-    paths = []
-    for obj in objects:
-        folder = out / f"object{obj.index:05d}"
-        folder.mkdir(parents=True, exist_ok=True)
-        for epoch, exposure in enumerate(obj.exposures):
-            path = folder / f"epoch{epoch:02d}.fits"
-            paths.append(write_exposure(exposure, path, overwrite=overwrite))
-    out.mkdir(parents=True, exist_ok=True)
-    for name, table in zip(
-        ("truth.fits", "epochs.fits"), stamps_truth_tables(objects), strict=True
-    ):
-        path = out / name
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-        table.write(path, format="fits", overwrite=True)
-        paths.append(path)
-    return paths
 
 
 _TRUTH_FIELDS = ("mag", "flux", "hlr", "e1", "e2", "g1", "g2")

@@ -1,5 +1,7 @@
 """PNG figures of the S/N-loss (paper Fig. 4) and edge-rejection (paper Fig. 6) results.
 
+The results come from :mod:`cellcoadd.analysis`.
+
 Figures are built with :class:`matplotlib.figure.Figure` directly (no pyplot state), so they
 are safe in scripts, tests and worker processes; matplotlib is imported only when plotting.
 """

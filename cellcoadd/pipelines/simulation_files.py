@@ -1,0 +1,108 @@
+"""Simulations to files: the exposure files, truth tables and descriptions of a run.
+
+The simulations (:mod:`cellcoadd.sim`) return in-memory results; these functions write
+them, for ``cellcoadd simulate`` and ``cellcoadd demo``. Each refuses to replace an
+existing file unless ``overwrite`` is set (raising :class:`FileExistsError`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from astropy.table import Table
+
+from cellcoadd.io.exposure_io import write_exposure
+from cellcoadd.sim.field import FieldSimulation
+from cellcoadd.sim.stamps import StampObject, stamps_truth_tables
+
+
+def write_field_simulation(
+    simulation: FieldSimulation, directory: str | os.PathLike[str], *, overwrite: bool = False
+) -> list[Path]:
+    """Write a field simulation's exposures and description into ``directory``.
+
+    Exposure files are ``visit{visit:04d}-det{detector:02d}.fits``, followed by
+    ``skymap.json``, ``simulation.json`` (configuration, seed, tract, patch: see
+    :meth:`FieldSimulation.description`), ``truth.fits`` and ``visits.fits``.
+
+    Parameters
+    ----------
+    simulation : FieldSimulation
+        Output of :func:`cellcoadd.sim.simulate_field`.
+    directory : path
+        Output folder, created if missing.
+    overwrite : bool
+        Replace existing files.
+
+    Returns
+    -------
+    list of Path
+        The written files, in that order.
+    """
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for exposure in simulation.exposures:
+        name = f"visit{exposure.visit:04d}-det{exposure.detector:02d}.fits"
+        paths.append(write_exposure(exposure, out / name, overwrite=overwrite))
+    for name, text in (
+        ("skymap.json", simulation.skymap.to_json()),
+        ("simulation.json", json.dumps(simulation.description(), indent=2) + "\n"),
+    ):
+        path = out / name
+        _refuse_existing(path, overwrite)
+        path.write_text(text)
+        paths.append(path)
+    for name, table in (("truth.fits", simulation.truth), ("visits.fits", simulation.visits)):
+        paths.append(_write_table(table, out / name, overwrite))
+    return paths
+
+
+def write_stamps(
+    objects: list[StampObject], directory: str | os.PathLike[str], *, overwrite: bool = False
+) -> list[Path]:
+    """Write stamp objects as ``object{index:05d}/epoch{epoch:02d}.fits`` exposures plus
+    ``truth.fits`` and ``epochs.fits`` (see :func:`cellcoadd.sim.stamps_truth_tables`).
+
+    Parameters
+    ----------
+    objects : list of StampObject
+        Output of :func:`cellcoadd.sim.simulate_stamps` (or of several
+        :func:`cellcoadd.sim.simulate_object` calls).
+    directory : path
+        Output folder, created if missing.
+    overwrite : bool
+        Replace existing files.
+
+    Returns
+    -------
+    list of Path
+        The written files: the exposures, then the two tables.
+    """
+    out = Path(directory)
+    paths = []
+    for obj in objects:
+        folder = out / f"object{obj.index:05d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for epoch, exposure in enumerate(obj.exposures):
+            path = folder / f"epoch{epoch:02d}.fits"
+            paths.append(write_exposure(exposure, path, overwrite=overwrite))
+    out.mkdir(parents=True, exist_ok=True)
+    for name, table in zip(
+        ("truth.fits", "epochs.fits"), stamps_truth_tables(objects), strict=True
+    ):
+        paths.append(_write_table(table, out / name, overwrite))
+    return paths
+
+
+def _refuse_existing(path: Path, overwrite: bool) -> None:
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+
+
+def _write_table(table: Table, path: Path, overwrite: bool) -> Path:
+    _refuse_existing(path, overwrite)
+    table.write(path, format="fits", overwrite=True)
+    return path
