@@ -15,11 +15,12 @@ import numpy as np
 
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.kernels.warp import warp_planes
 from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import PsfError, draw_exposure_psf, psf_moments
-from cellcoadd.builder.select import Candidate, Rejection, select_exposure
+from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
 from cellcoadd.errors import InputError
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -27,6 +28,13 @@ from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.sources import (
+    DescribedSource,
+    ExposureHeader,
+    ExposureSource,
+    describe,
+    header_of,
+)
 
 
 class _Sums:
@@ -109,7 +117,9 @@ class _SubMapping:
         self.x, self.y = x, y
 
 
-def _record(exposure: Exposure, status: InputStatus, **fields: float) -> InputRecord:
+def _record(
+    exposure: Exposure | ExposureHeader, status: InputStatus, **fields: float
+) -> InputRecord:
     return InputRecord(
         visit=exposure.visit,
         detector=exposure.detector,
@@ -125,7 +135,7 @@ def _record(exposure: Exposure, status: InputStatus, **fields: float) -> InputRe
     )
 
 
-def check_mask_bits(exposures: Sequence[Exposure], config: BuildConfig) -> None:
+def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: BuildConfig) -> None:
     """Refuse exposures that do not define every required bad-mask bit by name.
 
     Raises
@@ -146,7 +156,7 @@ def check_mask_bits(exposures: Sequence[Exposure], config: BuildConfig) -> None:
             )
 
 
-def check_unique_inputs(exposures: Sequence[Exposure]) -> None:
+def check_unique_inputs(exposures: Sequence[Exposure | ExposureHeader]) -> None:
     """Refuse duplicate ``(visit, detector)`` pairs (they would be coadded twice)."""
     seen: set[tuple[int, int]] = set()
     for exposure in exposures:
@@ -155,9 +165,16 @@ def check_unique_inputs(exposures: Sequence[Exposure]) -> None:
         seen.add(exposure.key)
 
 
+Input = Exposure | ExposureSource | DescribedSource
+
+#: Pixels loaded around a cell's footprint from an exposure source: the interpolation
+#: of bad pixels reads this far, plus the kernel's reach and a margin for the rough box.
+SOURCE_MARGIN = DEFAULT_MAX_RADIUS + 8
+
+
 def build_cell(
     cell: Cell,
-    exposures: Sequence[Exposure],
+    exposures: Sequence[Input],
     config: BuildConfig | None = None,
     seed: int = 0,
     *,
@@ -170,8 +187,10 @@ def build_cell(
     ----------
     cell : Cell
         The cell to build (its outer box is the output array).
-    exposures : sequence of Exposure
-        Candidate inputs; each gets an input record with its status.
+    exposures : sequence of Exposure or ExposureSource
+        Candidate inputs; each gets an input record with its status. A source is loaded
+        (cut to the cell's surroundings) only if it may overlap the cell, one at a time,
+        so memory does not grow with the number of inputs.
     config : BuildConfig
         Build settings (default ``BuildConfig()``).
     seed : int
@@ -192,56 +211,63 @@ def build_cell(
         input is returned with ``is_empty=True``, a NaN image and a NO_DATA mask.
     """
     config = config or BuildConfig()
-    check_unique_inputs(exposures)
+    inputs = [describe(item) for item in exposures]
+    headers = [header_of(item) for item in inputs]
+    check_unique_inputs(headers)
     if config.psf_size > min(cell.outer_bbox.shape):
         raise ValueError(f"psf_size {config.psf_size} exceeds the cell outer box {cell.outer_bbox}")
-    check_mask_bits(exposures, config)
-    mask_bits = mask_bits or MaskBits.union(exposure.mask_bits for exposure in exposures)
-    shape = cell.outer_bbox.shape
-    sums = _Sums(shape, config.n_noise, config.psf_size)
+    check_mask_bits(headers, config)
+    mask_bits = mask_bits or MaskBits.union(header.mask_bits for header in headers)
+    sums = _Sums(cell.outer_bbox.shape, config.n_noise, config.psf_size)
     records: list[InputRecord] = []
-    cell_jacobian = _cell_jacobian(cell)  # for the PSF moments of every input
-    grid_cache: dict = {}  # mapping grids, the same for every exposure of the cell
-    band = band if band is not None else (exposures[0].band if exposures else None)
-    for exposure in exposures:
-        if exposure.band != band:
-            records.append(_record(exposure, InputStatus.BAND_MISMATCH))
+    context = _CellContext(cell, config, seed, mask_bits)
+    band = band if band is not None else (headers[0].band if headers else None)
+    for item, header in zip(inputs, headers, strict=True):
+        if header.band != band:
+            records.append(_record(header, InputStatus.BAND_MISMATCH))
             continue
-        bad_bits = exposure.mask_bits.mask_of(
-            name for name in config.bad_mask_bits if name in exposure.mask_bits.bits
-        )
-        found = select_exposure(cell, exposure, config, bad_bits, grid_cache=grid_cache)
-        if isinstance(found, Rejection):
-            records.append(_record(exposure, found.status, overlap_fraction=found.overlap_fraction))
+        near = rough_exposure_box(cell, header)
+        if near is None:
+            records.append(_record(header, InputStatus.NO_OVERLAP))
             continue
-        pixels = exposure_planes(found, config, seed, bad_bits)
-        if pixels is None:  # a hole too large to interpolate
-            records.append(
-                _record(
-                    exposure, InputStatus.MASKED_FRACTION, overlap_fraction=found.overlap_fraction
-                )
-            )
-            continue
-        try:
-            psf_stamp = _coadd_psf_contribution(cell, found, config.psf_size)
-        except PsfError:
-            records.append(
-                _record(exposure, InputStatus.BAD_PSF, overlap_fraction=found.overlap_fraction)
-            )
-            continue
-        mask = translated_mask(exposure, found.footprint, mask_bits)
-        _add_exposure(sums, found, pixels, mask, psf_stamp, config.n_noise)
-        moments = psf_moments(psf_stamp, cell_jacobian)
-        records.append(
-            _record(
-                exposure,
-                InputStatus.USED,
-                weight=found.weight,
-                overlap_fraction=found.overlap_fraction,
-                **moments,
-            )
-        )
+        exposure = item if isinstance(item, Exposure) else item.load(near.grow(SOURCE_MARGIN))
+        records.append(_contribute(context, exposure, sums))
     return _finish(cell, sums, records, config, mask_bits)
+
+
+class _CellContext:
+    """What every input of one cell shares: the cell, settings, seed, output bits, the
+    cell's Jacobian (for PSF moments) and its mapping grids."""
+
+    def __init__(self, cell: Cell, config: BuildConfig, seed: int, mask_bits: MaskBits):
+        self.cell, self.config, self.seed, self.mask_bits = cell, config, seed, mask_bits
+        self.jacobian = _cell_jacobian(cell)
+        self.grid_cache: dict = {}  # mapping grids, the same for every exposure of the cell
+
+
+def _contribute(context: _CellContext, exposure: Exposure, sums: _Sums) -> InputRecord:
+    """Select ``exposure`` for the cell and, if it is usable, add it to ``sums``."""
+    cell, config = context.cell, context.config
+    bad_bits = exposure.mask_bits.mask_of(
+        name for name in config.bad_mask_bits if name in exposure.mask_bits.bits
+    )
+    found = select_exposure(cell, exposure, config, bad_bits, grid_cache=context.grid_cache)
+    if isinstance(found, Rejection):
+        return _record(exposure, found.status, overlap_fraction=found.overlap_fraction)
+    overlap = found.overlap_fraction
+    pixels = exposure_planes(found, config, context.seed, bad_bits)
+    if pixels is None:  # a hole too large to interpolate
+        return _record(exposure, InputStatus.MASKED_FRACTION, overlap_fraction=overlap)
+    try:
+        psf_stamp = _coadd_psf_contribution(cell, found, config.psf_size)
+    except PsfError:
+        return _record(exposure, InputStatus.BAD_PSF, overlap_fraction=overlap)
+    mask = translated_mask(exposure, found.footprint, context.mask_bits)
+    _add_exposure(sums, found, pixels, mask, psf_stamp, config.n_noise)
+    moments = psf_moments(psf_stamp, context.jacobian)
+    return _record(
+        exposure, InputStatus.USED, weight=found.weight, overlap_fraction=overlap, **moments
+    )
 
 
 def _cell_jacobian(cell: Cell) -> np.ndarray:

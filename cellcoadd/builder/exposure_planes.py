@@ -38,7 +38,10 @@ def noise_variance(exposure: Exposure, config: BuildConfig) -> float:
 
 
 def _variance_over(exposure: Exposure, box: Box) -> float | np.ndarray:
-    return exposure.variance if np.isscalar(exposure.variance) else exposure.variance[box.slices]  # type: ignore[index, return-value]
+    # Exposure holds a float or an image-shaped array
+    if isinstance(exposure.variance, np.ndarray):
+        return exposure.variance[box.slices]
+    return exposure.variance
 
 
 def exposure_planes(
@@ -70,8 +73,10 @@ def exposure_planes(
             config.n_noise,
             key,
             noise,
+            exposure.origin,
         )
     grown = box.grow(DEFAULT_MAX_RADIUS).intersection(Box.from_shape(exposure.shape))
+    assert exposure.mask is not None  # Exposure.__post_init__ fills it
     bad = (exposure.mask[grown.slices] & bad_bits) != 0
     pixels = input_planes(
         exposure.image[grown.slices],
@@ -84,6 +89,7 @@ def exposure_planes(
         config.n_noise,
         key,
         noise,
+        exposure.origin,
     )
     unfilled = interpolate_bad_pixels(pixels, bad)
     inside = (
@@ -99,6 +105,7 @@ def exposure_planes(
 def translated_mask(exposure: Exposure, box: Box, coadd_bits: MaskBits) -> np.ndarray:
     """The exposure's mask over ``box`` in the coadd's bit numbering (bits matched by
     name, see :meth:`cellcoadd.model.maskbits.MaskBits.translation_to`)."""
+    assert exposure.mask is not None  # Exposure.__post_init__ fills it
     mask = exposure.mask[box.slices]
     translation = exposure.mask_bits.translation_to(coadd_bits)
     if translation is None:  # the same numbering

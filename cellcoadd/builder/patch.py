@@ -2,11 +2,16 @@
 
 Each cell is an independent task that receives only the exposures near it; its result
 depends only on its inputs and the seed, so the patch is bit-identical whatever the
-executor and the number of workers. Exposures are sent to each worker once, never with
+executor and the number of workers. Inputs are sent to each worker once, never with
 every task: a process pool created here installs them in each process (its initializer)
 and tasks carry indices; on a dask cluster they are scattered once, then copied to every
-worker, and tasks carry references to them. A failing cell stops the build with an error
-naming the cell and carrying the worker's traceback.
+worker, and tasks carry references to them. Inputs given as exposure sources
+(:class:`~cellcoadd.model.sources.ExposureSource`: paths and options) weigh nothing:
+which cells they serve is decided from their headers, and each worker loads the pixels
+it needs, one exposure cut to one cell at a time, so memory does not grow with the
+number of exposures and no pixel crosses a process boundary except finished cells. A
+failing cell stops the build with an error naming the cell and carrying the worker's
+traceback.
 """
 
 from __future__ import annotations
@@ -37,30 +42,33 @@ from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
+from cellcoadd.model.sources import DescribedSource, ExposureSource, describe, header_of
 
-# The exposures of the build, installed once in each process of a pool this module
-# creates (its initializer), so that cell tasks carry exposure indices instead of pixels.
+Input = Exposure | DescribedSource
+
+# The inputs of the build, installed once in each process of a pool this module creates
+# (its initializer), so that cell tasks carry input indices instead of pixels.
 # Per-process transport state only: every result depends on the task's arguments alone.
-_pool_exposures: list[Exposure] = []
+_pool_inputs: list[Input] = []
 
 
-def _install_exposures(exposures: list[Exposure]) -> None:
-    _pool_exposures[:] = exposures
+def _install_inputs(inputs: list[Input]) -> None:
+    _pool_inputs[:] = inputs
 
 
 def _build_one(
     cell: Cell,
-    candidates: list[Exposure] | list[int],
+    candidates: list[Input] | list[int],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
 ) -> CellCoadd:
-    """Build one cell from its candidate exposures (or their indices in the pool table)."""
+    """Build one cell from its candidate inputs (or their indices in the pool table)."""
     try:
         if candidates and isinstance(candidates[0], int):
-            candidates = [_pool_exposures[i] for i in candidates]
+            candidates = [_pool_inputs[i] for i in candidates]  # type: ignore[index]
         # the cheap batched search over-selects; the exact test decides, here in the task
-        near = [e for e in candidates if rough_exposure_box(cell, e) is not None]
+        near = [e for e in candidates if rough_exposure_box(cell, header_of(e)) is not None]  # type: ignore[arg-type]
         return build_cell(cell, near, config, seed, mask_bits=mask_bits)
     except Exception as err:
         # the traceback text travels with the error across process boundaries
@@ -111,7 +119,7 @@ def _run_on(
 def _run_on_dask(
     client: Any,
     tasks: list[tuple[Cell, list[int]]],
-    exposures: list[Exposure],
+    exposures: list[Input],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
@@ -194,7 +202,7 @@ def _broken_or_pending(future: Future) -> bool:
 
 def build_patch(
     patch: Patch,
-    exposures: Sequence[Exposure],
+    exposures: Sequence[Exposure | ExposureSource],
     config: BuildConfig | None = None,
     seed: int = 0,
     executor: Executor | None = None,
@@ -210,8 +218,10 @@ def build_patch(
     ----------
     patch : Patch
         The patch to build.
-    exposures : sequence of Exposure
-        All candidate inputs, of one band; each cell receives those near it.
+    exposures : sequence of Exposure or ExposureSource
+        All candidate inputs, of one band; each cell receives those near it. Sources
+        (e.g. :class:`cellcoadd.io.MefExposureFile`) are described from their headers
+        here and loaded by the workers, cut to each cell, one at a time.
     config : BuildConfig
         Build settings (default ``BuildConfig()``), stored in the result.
     seed : int
@@ -254,9 +264,10 @@ def build_patch(
     environment of ``dask worker``). Results are identical either way.
     """
     config = config or BuildConfig()
-    exposures = list(exposures)
-    check_unique_inputs(exposures)
-    bands = sorted({exposure.band for exposure in exposures})
+    inputs = [describe(item) for item in exposures]  # a source's header is read once, here
+    headers = [header_of(item) for item in inputs]
+    check_unique_inputs(headers)
+    bands = sorted({header.band for header in headers})
     if not bands:
         raise ValueError("build_patch needs at least one exposure")
     if len(bands) > 1:
@@ -265,29 +276,29 @@ def build_patch(
         check_band_name(bands[0])
     except ValueError as err:
         raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
-    check_mask_bits(exposures, config)  # before any work
-    mask_bits = MaskBits.union(exposure.mask_bits for exposure in exposures)
+    check_mask_bits(headers, config)  # before any work
+    mask_bits = MaskBits.union(header.mask_bits for header in headers)
     cells = patch.cells
-    near = exposures_near_cells(cells, exposures)
+    near = exposures_near_cells(cells, headers)
     client = pool = None
     if executor is None and scheduler is not None:
         client, release = dask_client(scheduler)
     else:
         pool, release = resolve_executor(
-            executor, workers, scheduler, initializer=_install_exposures, initargs=(exposures,)
+            executor, workers, scheduler, initializer=_install_inputs, initargs=(inputs,)
         )
-    # a pool made here holds the exposures and dask receives them once: tasks name them by
-    # index; a given executor gets the pixels with each task
+    # a pool made here holds the inputs and dask receives them once: tasks name them by
+    # index; a given executor gets the inputs with each task
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
     tasks = [
-        (cell, indices if owned or client is not None else [exposures[i] for i in indices])
+        (cell, indices if owned or client is not None else [inputs[i] for i in indices])
         for cell, indices in zip(cells, near, strict=True)
     ]
     results: dict[tuple[int, int], CellCoadd] = {}
     bar = tqdm(total=len(tasks), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if client is not None:
-            _run_on_dask(client, tasks, exposures, config, seed, mask_bits, results, bar)
+            _run_on_dask(client, tasks, inputs, config, seed, mask_bits, results, bar)
         elif pool is None:
             for cell, candidates in tasks:
                 results[cell.index] = _build_one(cell, candidates, config, seed, mask_bits)

@@ -20,6 +20,7 @@ from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputStatus
+from cellcoadd.model.sources import ExposureHeader
 
 # Range of scaled background variances the float32 coadd planes can represent.
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)
@@ -60,7 +61,7 @@ def _rough_points(cell: Cell) -> tuple[np.ndarray, np.ndarray]:
     return gx.ravel(), gy.ravel()
 
 
-def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
+def rough_exposure_box(cell: Cell, exposure: Exposure | ExposureHeader) -> Box | None:
     """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far)."""
     ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
     try:
@@ -79,7 +80,9 @@ def rough_exposure_box(cell: Cell, exposure: Exposure) -> Box | None:
 
 
 def exposures_near_cells(
-    cells: Sequence[Cell], exposures: Sequence[Exposure], margin: float = 16.0
+    cells: Sequence[Cell],
+    exposures: Sequence[Exposure | ExposureHeader],
+    margin: float = 16.0,
 ) -> list[list[int]]:
     """For each cell, the indices of the exposures that may be near it, in one pass.
 
@@ -118,7 +121,8 @@ def exposures_near_cells(
         if ex is not None:
             ex = np.asarray(ex).reshape(len(cells), n_points)
             ey = np.asarray(ey).reshape(len(cells), n_points)
-            unsure = unsure.reshape(len(cells), n_points).any(axis=1)
+            # numpy stub: any(axis=1) of a 2-D array is typed np.bool | NDArray; an array here
+            unsure = unsure.reshape(len(cells), n_points).any(axis=1)  # type: ignore[assignment]
             unsure |= ~(np.isfinite(ex).all(axis=1) & np.isfinite(ey).all(axis=1))
             ny, nx = exposure.shape
             with np.errstate(invalid="ignore"):
@@ -162,6 +166,7 @@ def select_exposure(
     except WCS_ERRORS:
         return Rejection(InputStatus.NO_OVERLAP)
     valid = exposure.valid_box
+    assert valid is not None  # Exposure.__post_init__ fills it
     x, y = mapping.x, mapping.y
     inside = valid.contains(x, y)
     overlap_fraction = float(np.mean(inside))
@@ -181,12 +186,13 @@ def select_exposure(
     if not _FLOAT32_TINY < variance < _FLOAT32_MAX:
         # the coadd stores float32 planes: this input's scaled noise would under/overflow
         return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
+    assert exposure.mask is not None  # Exposure.__post_init__ fills it
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0
     if bad.mean() > config.max_mask_fraction:
         return Rejection(InputStatus.MASKED_FRACTION, overlap_fraction)
     if not np.all(np.isfinite(exposure.image[footprint.slices][~bad])):
         return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
-    if not np.isscalar(exposure.variance):
+    if isinstance(exposure.variance, np.ndarray):  # else a float
         variance = exposure.variance[footprint.slices][~bad]
         if not (np.all(np.isfinite(variance)) and np.all(variance > 0)):
             return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)

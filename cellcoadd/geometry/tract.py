@@ -16,11 +16,12 @@ from functools import cached_property
 
 import numpy as np
 from astropy.wcs import WCS
+from numpy.typing import ArrayLike
 
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import InnerRegion
-from cellcoadd.geometry.wcs_utils import canonical_wcs, gnomonic_radec, gnomonic_uv
+from cellcoadd.geometry.wcs_utils import canonical_wcs, gnomonic_radec, gnomonic_uv, shifted_wcs
 
 
 def tract_wcs(center: tuple[float, float], config: SkyMapConfig) -> WCS:
@@ -40,14 +41,6 @@ def tract_wcs(center: tuple[float, float], config: SkyMapConfig) -> WCS:
     wcs.wcs.radesys = "ICRS"
     wcs.wcs.set()
     return canonical_wcs(wcs)
-
-
-def shifted_wcs(wcs: WCS, x_start: int, y_start: int) -> WCS:
-    """Copy of ``wcs`` whose array pixel (0, 0) is its pixel ``(x_start, y_start)``."""
-    out = wcs.deepcopy()
-    out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
-    out.wcs.set()
-    return canonical_wcs(out)
 
 
 @dataclass(frozen=True)
@@ -251,7 +244,7 @@ class Tract:
         scale = self.config.pixel_scale
         return self._center_pixel + u / scale, self._center_pixel + v / scale
 
-    def pixel_to_sky(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_to_sky(self, x: ArrayLike, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """``(ra, dec)`` in deg, RA in [0, 360), of tract pixel(s) ``(x, y)``; vectorised."""
         scale = self.config.pixel_scale
         u = (np.atleast_1d(np.asarray(x, dtype=float)) - self._center_pixel) * scale

@@ -115,6 +115,27 @@ def pixel_area(wcs: WCS, x: float, y: float) -> float:
     return float(abs(np.linalg.det(local_jacobian(wcs, x, y))))
 
 
+def shifted_wcs(wcs: WCS, x_start: int, y_start: int) -> WCS:
+    """Copy of ``wcs`` whose array pixel (0, 0) is its pixel ``(x_start, y_start)``: the
+    WCS of a cutout starting there.
+
+    Exact for TAN, TPV and SIP: their distortions are functions of the offset from the
+    reference pixel, which moves with it (the SIP polynomials carry their own copy of
+    it). Lookup-table distortions (``cpdis``, ``det2im``) are refused.
+    """
+    from astropy.wcs import Sip
+
+    if wcs.cpdis1 is not None or wcs.cpdis2 is not None or wcs.det2im1 is not None:
+        raise ValueError("cannot shift a WCS with lookup-table distortions")
+    out = wcs.deepcopy()
+    out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
+    if out.sip is not None:
+        sip = out.sip
+        out.sip = Sip(sip.a, sip.b, sip.ap, sip.bp, out.wcs.crpix)
+    out.wcs.set()
+    return canonical_wcs(out)
+
+
 def canonical_wcs(wcs: WCS) -> WCS:
     """``wcs`` in the form it takes after being sent to another process.
 

@@ -64,6 +64,11 @@ class Exposure:
         Names of the bits of ``mask``.
     valid_box : Box, optional
         The pixels that hold data (default the whole array).
+    origin : (int, int)
+        Detector pixel ``(x, y)`` of ``image[0, 0]``: non-zero when the exposure is a
+        cutout of a detector image (``wcs`` then describes the cutout). The PSF model and
+        the noise realizations are evaluated in detector pixels, so a cutout gives the
+        same values as the whole detector image.
 
     Notes
     -----
@@ -82,6 +87,7 @@ class Exposure:
     mask: np.ndarray | None = None
     mask_bits: MaskBits = field(default_factory=MaskBits)
     valid_box: Box | None = None
+    origin: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
         name = f"exposure (visit={self.visit}, detector={self.detector})"
@@ -134,6 +140,13 @@ class Exposure:
             raise ExposureError(
                 f"{name}: {int(bad.sum())} non-finite pixels are not flagged in the mask"
             )
+        if not (
+            isinstance(self.origin, tuple)
+            and len(self.origin) == 2
+            and all(isinstance(v, numbers.Integral) and v >= 0 for v in self.origin)
+        ):
+            raise ExposureError(f"{name}: origin must be two non-negative integers")
+        object.__setattr__(self, "origin", (int(self.origin[0]), int(self.origin[1])))
         try:
             model = as_psf_model(self.psf)
         except PsfError as err:
@@ -175,8 +188,23 @@ class Exposure:
         self, x: float, y: float, box: Box, center: tuple[float, float] | None = None
     ) -> np.ndarray:
         """The PSF at exposure pixel ``(x, y)``, pixel included, unit flux, over ``box``,
-        centred at ``(x, y)`` or ``center`` (see :meth:`cellcoadd.model.psf.PsfModel.draw`)."""
-        return self.psf_model.draw(x, y, box, self.local_jacobian(x, y), center)
+        centred at ``(x, y)`` or ``center`` (see :meth:`cellcoadd.model.psf.PsfModel.draw`).
+
+        Positions and ``box`` are in this exposure's pixels; the model is asked in
+        detector pixels (shifted by :attr:`origin`)."""
+        jacobian = self.local_jacobian(x, y)
+        ox, oy = self.origin
+        if ox == 0 and oy == 0:
+            return self.psf_model.draw(x, y, box, jacobian, center)
+        shifted = Box(
+            x_start=box.x_start + ox,
+            x_stop=box.x_stop + ox,
+            y_start=box.y_start + oy,
+            y_stop=box.y_stop + oy,
+        )
+        if center is not None:
+            center = (center[0] + ox, center[1] + oy)
+        return self.psf_model.draw(x + ox, y + oy, shifted, jacobian, center)
 
 
 def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:

@@ -122,6 +122,7 @@ def input_planes(
     n_noise: int,
     noise_seed: tuple[int, int, int],
     noise_variance: float = 0.0,
+    origin: tuple[int, int] = (0, 0),
 ) -> np.ndarray:
     """The planes to warp over ``box``, interleaved: shape ``(ny, nx, P)``, float64.
 
@@ -147,6 +148,9 @@ def input_planes(
     noise_variance : float
         Variance (counts^2, before ``flux_scale``) of the noise realizations, e.g. the
         background variance; 0 draws each pixel's noise with its own ``variance``.
+    origin : (int, int)
+        Detector pixel of the exposure's ``[0, 0]`` (non-zero for a cutout): the noise is
+        a function of detector pixels, so a cutout draws the same values as the whole.
 
     Returns
     -------
@@ -169,7 +173,7 @@ def input_planes(
         if x.size:
             _read_spans(x, y, box.x_start, box.y_start, box.shape[1], first, stop)
     scalar = np.isscalar(variance)
-    variance_plane = np.zeros((1, 1)) if scalar else variance
+    variance_plane = np.zeros((1, 1)) if scalar else np.asarray(variance)  # no copy
     key0, key1 = noise_key(*noise_seed)
     _fill(
         pixels,
@@ -180,8 +184,8 @@ def input_planes(
         bad,
         float(flux_scale),
         float(noise_variance),
-        box.x_start,
-        box.y_start,
+        box.x_start + origin[0],  # the noise is keyed by detector pixels
+        box.y_start + origin[1],
         first,
         stop,
         n_noise,
