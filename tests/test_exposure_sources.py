@@ -60,12 +60,7 @@ class ArraySource(ExposureSource):
             zero_point=e.zero_point,
             mask=e.mask[box.slices].copy(),
             mask_bits=e.mask_bits,
-            valid_box=Box(
-                x_start=valid.x_start - box.x_start,
-                x_stop=valid.x_stop - box.x_start,
-                y_start=valid.y_start - box.y_start,
-                y_stop=valid.y_stop - box.y_start,
-            ),
+            valid_box=valid.shifted(-box.x_start, -box.y_start),
             origin=(box.x_start, box.y_start),
         )
         ALIVE.add(id(cut))
@@ -135,3 +130,40 @@ def test_patch_from_sources_is_identical_for_any_executor(tract):
     assert sum(c.n_used for c in serial.cells.values()) > 0
     for index, cell in serial.cells.items():
         assert cell.equals(pooled.cells[index]), index
+
+
+def test_exposure_files_load_cutouts(tmp_path, tract):
+    from cellcoadd.io import read_exposure, write_exposure
+    from cellcoadd.io.exposure_source import ExposureFile
+
+    cell = tract.cell(1, 1)
+    exposure = _exposures(cell.center_sky, n=2)[1]  # SIP, rotated, a bad row
+    exposure = dataclasses.replace(exposure, variance=np.full(exposure.shape, 1.5))
+    path = write_exposure(exposure, tmp_path / "e.fits")
+    source = ExposureFile(path)
+    header = source.header()
+    assert (header.key, header.shape, header.band) == (exposure.key, exposure.shape, "r")
+    box = Box(x_start=40, x_stop=170, y_start=25, y_stop=230)
+    cut, whole = source.load(box), read_exposure(path)
+    assert cut.origin == (40, 25)
+    np.testing.assert_array_equal(cut.image, whole.image[box.slices])
+    np.testing.assert_array_equal(cut.mask, whole.mask[box.slices])
+    np.testing.assert_array_equal(cut.variance, whole.variance[box.slices])
+    x, y = np.array([0.0, 50.5, 120.0]), np.array([3.0, 199.0, 80.25])
+    np.testing.assert_allclose(
+        np.array(cut.wcs.all_pix2world(x, y, 0)),
+        np.array(whole.wcs.all_pix2world(x + 40, y + 25, 0)),
+        rtol=0,
+        atol=1e-10,
+    )
+    # the cutout draws the PSF the whole exposure draws at the same detector pixel
+    stamp = Box(x_start=60, x_stop=75, y_start=90, y_stop=105)
+    np.testing.assert_allclose(
+        cut.draw_psf(67.3 - 40, 97.6 - 25, stamp.shifted(-40, -25)),
+        whole.draw_psf(67.3, 97.6, stamp),
+        rtol=0,
+        atol=1e-12,
+    )
+    # a cutout written and read again keeps its place on the detector
+    again = read_exposure(write_exposure(cut, tmp_path / "cut.fits"))
+    assert again.origin == (40, 25)

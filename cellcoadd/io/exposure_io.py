@@ -11,16 +11,17 @@ IMAGE     primary HDU: the image (float32/float64 as given); header: the WCS
           half-open), VARKIND (SCALAR or ARRAY), VARIANCE (when scalar), PSFKIND
 MASK      int32 bit mask; header keywords ``MP_<NAME> = bit`` for every mask bit
 VARIANCE  float64 variance plane (only when the variance is an array)
-PSF       PSFKIND = GRID: float64 cube (n_y_nodes, n_x_nodes, n, n) of pre-pixel stamps;
-          PSFKIND = IMAGE: the image PSF stamp (dtype as given)
+PSF       PSFKIND = SAMPLED, GRID, PIXGRID: float64 cube (n_y_nodes, n_x_nodes, n, n) of
+          oversampled stamps; IMAGE: the image PSF stamp (dtype as given); PSFEX, PIFF:
+          uint8 copy of the model file's bytes (SHA-256 in META); none for PROFILE, VARYING
 META      uint8 bytes of a UTF-8 JSON document with the exact values (see below)
 ========  ==================================================================================
 
 Pixel arrays round-trip bit for bit (``-0.0`` included), except that cfitsio writes every
 NaN with one canonical bit pattern (the NaN positions are kept).
 
-PSF kinds (``PROFILE``, ``VARYING``, ``SAMPLED``, ``GRID``, ``IMAGE``): see
-:mod:`cellcoadd.io.exposure_psf`.
+PSF kinds (``PROFILE``, ``VARYING``, ``SAMPLED``, ``GRID``, ``PIXGRID``, ``IMAGE``,
+``PSFEX``, ``PIFF``): see :mod:`cellcoadd.io.exposure_psf`.
 
 cfitsio writes floating-point header values with 15 significant digits, which is not
 enough to round-trip float64 (nor a WCS to 1e-9 pixel). The META document therefore holds
@@ -37,14 +38,16 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TypeVar
 
 import fitsio
 import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io.atomic import atomic_write, exists_error
 from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io.disk_space import check_free_space
@@ -57,9 +60,14 @@ from cellcoadd.io.fits_checksums import (
 from cellcoadd.io.wcs_header import as_float, read_wcs, same_float, wcs_cards
 from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.sources import ExposureHeader
+
+T = TypeVar("T")
 
 EXPOSURE_FORMAT = "cellcoadd-exposure"
-EXPOSURE_FORMAT_VERSION = "1.1"  # 1.1: DATACRC keywords
+# 1.1: DATACRC keywords; 1.2: PSF kinds PIXGRID, PSFEX and PIFF (a 1.1 reader refuses them
+# as unknown PSF kinds)
+EXPOSURE_FORMAT_VERSION = "1.2"
 
 
 def write_exposure(
@@ -95,7 +103,8 @@ def write_exposure(
             f"be stored: {type(err).__name__}: {err}"
         ) from err
     scalar_variance = isinstance(exposure.variance, float)
-    box = exposure.valid_box
+    # valid_box is never None once the exposure is built
+    box = exposure.valid_box if exposure.valid_box is not None else Box.from_shape(exposure.shape)
     meta = {
         "format": EXPOSURE_FORMAT,
         "format_version": EXPOSURE_FORMAT_VERSION,
@@ -109,6 +118,8 @@ def write_exposure(
         "wcs_exact": wcs_exact,
         "psf": psf_meta,
     }
+    if exposure.origin != (0, 0):  # a cutout: where it lies on its detector (format 1.2)
+        meta["origin"] = list(exposure.origin)
     keys: list[dict[str, Any]] = [
         {"name": "CCFORMAT", "value": EXPOSURE_FORMAT, "comment": "file format"},
         {"name": "FMTVER", "value": EXPOSURE_FORMAT_VERSION, "comment": "format version"},
@@ -144,8 +155,10 @@ def write_exposure(
         for hdu in fits_file:
             hdu.write_checksum()
 
-    arrays = [exposure.image, exposure.mask, meta_bytes]
-    arrays += [a for a in (psf_array, exposure.variance) if isinstance(a, np.ndarray)]
+    arrays: list[np.ndarray] = [exposure.image, meta_bytes]
+    arrays += [
+        a for a in (exposure.mask, psf_array, exposure.variance) if isinstance(a, np.ndarray)
+    ]
     needed = sum(a.nbytes for a in arrays) + 2880 * (8 + 2 * len(arrays))
 
     def write_file(temporary: Path) -> None:
@@ -163,8 +176,18 @@ def write_exposure(
     )
 
 
-def read_exposure(path: str | os.PathLike[str]) -> Exposure:
-    """Read an exposure written by :func:`write_exposure`.
+def read_exposure(path: str | os.PathLike[str], box: Box | None = None) -> Exposure:
+    """Read an exposure written by :func:`write_exposure`, or its cutout over ``box``.
+
+    Parameters
+    ----------
+    path : path-like
+        The exposure file.
+    box : Box, optional
+        Pixels to read (half-open, in the file's pixels; clipped to the image). Only
+        those pixels are read, and the result is an exposure with ``origin`` and WCS
+        of the cutout. The checksums of a file are verified when it is read whole; a
+        cutout verifies its small HDUs (META, PSF) only.
 
     Raises
     ------
@@ -172,6 +195,16 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
         For a missing, unreadable, truncated, corrupted (CHECKSUM/DATASUM or DATACRC) or
         inconsistent file, or one of another kind; never another exception type.
     """
+    return _with_file(path, lambda fits_file, raw: _read(fits_file, raw, box))
+
+
+def read_exposure_header(path: str | os.PathLike[str]) -> ExposureHeader:
+    """What a build needs to know of an exposure file before its pixels: identity, band,
+    WCS, shape, valid box, zero point and mask bits (no pixel is read)."""
+    return _with_file(path, lambda fits_file, raw: _header(fits_file, raw))
+
+
+def _with_file(path: str | os.PathLike[str], read: Callable[[fitsio.FITS, BinaryIO], T]) -> T:
     if os.path.exists(path) and not os.path.isfile(path):
         # a directory, pipe or device: CFITSIO could block on it
         raise CellCoaddFormatError(path, "not a regular file")
@@ -179,7 +212,7 @@ def read_exposure(path: str | os.PathLike[str]) -> Exposure:
     clear_cfitsio_messages()
     try:
         with fitsio.FITS(os.fspath(path)) as fits_file, open(path, "rb") as raw:
-            return _read(fits_file, raw)
+            return read(fits_file, raw)
     except CellCoaddFormatError as err:
         raise CellCoaddFormatError(path, err.problem) from None
     except Exception as err:  # any library error on a malformed file becomes a format error
@@ -200,23 +233,72 @@ def _fail(problem: str) -> CellCoaddFormatError:
     return CellCoaddFormatError("", problem)
 
 
-def _read(fits_file: fitsio.FITS, raw: BinaryIO) -> Exposure:
-    """The exposure in ``fits_file``; ``raw`` is the same file, for the checksums."""
+def _open_parts(
+    fits_file: fitsio.FITS, raw: BinaryIO, verify_all: bool
+) -> tuple[list[str], dict[str, Any], fitsio.FITSHDR]:
+    """HDU names, META and the IMAGE header, checked; checksums of every HDU (or of the
+    small ones only)."""
     names = [hdu.get_extname() for hdu in fits_file]
     for required in ("IMAGE", "MASK", "META"):
         if required not in names:
             raise _fail(f"missing HDU {required} (HDUs: {names})")
     for hdu in fits_file:
-        try:
-            verify_hdu(raw, hdu.get_offsets())
-        except ValueError as err:
-            raise _fail(f"HDU {hdu.get_extname() or hdu.get_extnum()}: {err}") from None
+        if verify_all or hdu.get_extname() in ("META", "PSF"):
+            try:
+                verify_hdu(raw, hdu.get_offsets())
+            except ValueError as err:
+                raise _fail(f"HDU {hdu.get_extname() or hdu.get_extnum()}: {err}") from None
     meta = _read_meta(fits_file["META"].read())
     image_header = fits_file["IMAGE"].read_header()
     _check_keywords(image_header, meta)
+    return names, meta, image_header
 
-    image = _native(fits_file["IMAGE"].read())
-    mask = _native(fits_file["MASK"].read())
+
+def _image_shape(fits_file: fitsio.FITS) -> tuple[int, int]:
+    dims = fits_file["IMAGE"].get_dims()
+    if len(dims) != 2:
+        raise _fail(f"IMAGE must be 2-D, got dimensions {dims}")
+    return int(dims[0]), int(dims[1])
+
+
+def _meta_origin(meta: dict[str, Any]) -> tuple[int, int]:
+    origin = meta.get("origin", [0, 0])
+    if not (isinstance(origin, list) and len(origin) == 2 and all(type(v) is int for v in origin)):
+        raise _fail("META origin must hold 2 integers")
+    return origin[0], origin[1]
+
+
+def _header(fits_file: fitsio.FITS, raw: BinaryIO) -> ExposureHeader:
+    _, meta, image_header = _open_parts(fits_file, raw, verify_all=False)
+    x0, x1, y0, y1 = (int(v) for v in meta["valid_box"])
+    return ExposureHeader(
+        visit=int(meta["visit"]),
+        detector=int(meta["detector"]),
+        band=meta["band"],
+        wcs=read_wcs(image_header, meta["wcs_exact"]),
+        shape=_image_shape(fits_file),
+        valid_box=Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1),
+        zero_point=as_float(meta["zero_point"], "zero_point"),
+        mask_bits=MaskBits(bits=meta["mask_bits"]),
+    )
+
+
+def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Exposure:
+    """The exposure in ``fits_file`` (its cutout over ``box``); ``raw`` is the same file,
+    for the checksums."""
+    names, meta, image_header = _open_parts(fits_file, raw, verify_all=box is None)
+    full = Box.from_shape(_image_shape(fits_file))
+    cut = full if box is None else box.intersection(full)
+    if cut.is_empty:
+        raise _fail(f"box {box} is outside the image {full}")
+
+    def pixels(hdu: str) -> np.ndarray:
+        if cut == full:
+            return _native(fits_file[hdu].read())
+        return _native(fits_file[hdu][cut.y_start : cut.y_stop, cut.x_start : cut.x_stop])
+
+    image = pixels("IMAGE")
+    mask = pixels("MASK")
     if image.ndim != 2 or mask.shape != image.shape or mask.dtype != np.int32:
         raise _fail("IMAGE and MASK must be 2-D of the same shape, MASK int32")
     mask_bits = MaskBits(bits=meta["mask_bits"])
@@ -225,14 +307,17 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO) -> Exposure:
     if meta["variance"] is None:
         if "VARIANCE" not in names:
             raise _fail("missing HDU VARIANCE for an array variance")
-        variance: float | np.ndarray = _native(fits_file["VARIANCE"].read())
+        variance: float | np.ndarray = pixels("VARIANCE")
     else:
         variance = as_float(meta["variance"], "variance")
     psf_array = _native(fits_file["PSF"].read()) if "PSF" in names else None
     x0, x1, y0, y1 = (int(v) for v in meta["valid_box"])
+    valid = Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1).intersection(cut)
+    wcs = read_wcs(image_header, meta["wcs_exact"])
+    ox, oy = _meta_origin(meta)
     return Exposure(
         image=image,
-        wcs=read_wcs(image_header, meta["wcs_exact"]),
+        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start),
         variance=variance,
         psf=read_psf(meta["psf"], psf_array),
         visit=int(meta["visit"]),
@@ -241,7 +326,8 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO) -> Exposure:
         zero_point=as_float(meta["zero_point"], "zero_point"),
         mask=mask,
         mask_bits=mask_bits,
-        valid_box=Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1),
+        valid_box=valid.shifted(-cut.x_start, -cut.y_start),
+        origin=(ox + cut.x_start, oy + cut.y_start),
     )
 
 
@@ -257,7 +343,7 @@ def _read_meta(data: np.ndarray) -> dict[str, Any]:
     version = str(meta.get("format_version", ""))
     if version.split(".")[0] != EXPOSURE_FORMAT_VERSION.split(".")[0]:
         raise _fail(f"unsupported format version {version!r} (reader: {EXPOSURE_FORMAT_VERSION})")
-    required = {
+    required: dict[str, type | tuple[type, ...]] = {
         "visit": int,
         "detector": int,
         "band": str,

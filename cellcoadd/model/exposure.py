@@ -196,12 +196,7 @@ class Exposure:
         ox, oy = self.origin
         if ox == 0 and oy == 0:
             return self.psf_model.draw(x, y, box, jacobian, center)
-        shifted = Box(
-            x_start=box.x_start + ox,
-            x_stop=box.x_stop + ox,
-            y_start=box.y_start + oy,
-            y_stop=box.y_stop + oy,
-        )
+        shifted = box.shifted(ox, oy)
         if center is not None:
             center = (center[0] + ox, center[1] + oy)
         return self.psf_model.draw(x + ox, y + oy, shifted, jacobian, center)

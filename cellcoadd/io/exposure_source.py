@@ -1,0 +1,34 @@
+"""cellcoadd's own exposure files as exposure sources (headers now, cutouts on demand)."""
+
+from __future__ import annotations
+
+import os
+
+from cellcoadd.geometry.box import Box
+from cellcoadd.io.exposure_io import read_exposure, read_exposure_header
+from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.sources import ExposureHeader, ExposureSource
+
+
+class ExposureFile(ExposureSource):
+    """An exposure file written by :func:`cellcoadd.write_exposure`, read on demand.
+
+    Picklable (it holds the path only), so worker processes load their own inputs.
+
+    Parameters
+    ----------
+    path : path-like
+        The exposure file.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = os.fspath(path)
+
+    def header(self) -> ExposureHeader:
+        return read_exposure_header(self.path)
+
+    def load(self, box: Box | None = None) -> Exposure:
+        return read_exposure(self.path, box)
+
+    def __repr__(self) -> str:
+        return f"ExposureFile({self.path!r})"
