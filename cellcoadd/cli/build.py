@@ -1,17 +1,55 @@
-"""``cellcoadd build``: exposure files -> one patch coadd file."""
+"""``cellcoadd build``: exposure files (listed, or in a manifest) -> one patch coadd file."""
 
 from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
+from typing import Any
 
 import click
 
 from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option, skymap_option
 
 
+def check_output_path(out: str, overwrite: bool) -> None:
+    """Refuse, before any work, an output the build could not write.
+
+    Raises
+    ------
+    click.ClickException
+        For a missing directory, an unknown extension, a CFITSIO-style name
+        (``x[1].fits``, ``!x.fits``) or an existing file without ``--overwrite``.
+    """
+    from cellcoadd.io.api import file_format
+
+    directory = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(directory):
+        raise click.ClickException(f"{out}: the directory {directory} does not exist")
+    name = os.path.basename(out)
+    if name.startswith("!") or "[" in name or "]" in name:
+        raise click.ClickException(f"{out}: '!', '[' and ']' are not allowed in file names")
+    try:
+        file_format(out)
+    except ValueError as err:
+        raise click.ClickException(str(err)) from None
+    if os.path.exists(out) and not overwrite:
+        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+
+
 @click.command()
-@click.argument("exposure_files", nargs=-1, required=True, type=click.Path(exists=True))
+@click.argument("exposure_files", nargs=-1, type=click.Path(exists=True, dir_okay=False))
+@click.option(
+    "--manifest",
+    type=click.Path(exists=True, dir_okay=False),
+    help="Inputs listed in a .toml, .json or .csv file (path, layout, psf, background...).",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(exists=True, dir_okay=False),
+    help="BuildConfig fields in a .toml or .json file (see `cellcoadd config --show`).",
+)
 @skymap_option
 @click.option("--tract", "tract_id", type=int, required=True, help="Tract id.")
 @click.option("--patch", "patch_text", required=True, help="Patch index PX,PY.")
@@ -19,13 +57,15 @@ from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option, skymap_
 @click.option("--workers", type=int, default=1, show_default=True, help="Local processes.")
 @click.option("--scheduler", help="dask.distributed scheduler address (runs cells there).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise realization seed.")
-@click.option("--n-noise", type=int, default=3, show_default=True, help="Noise realizations K.")
-@click.option("--psf-size", type=int, default=35, show_default=True, help="PSF stamp side, px.")
+@click.option("--n-noise", type=int, help="Noise realizations K (overrides --config).")
+@click.option("--psf-size", type=int, help="PSF stamp side, px (overrides --config).")
 @click.option("--compression", type=click.Choice(["none", "lossless"]), default="none")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @quiet_option
 def build(
     exposure_files: tuple[str, ...],
+    manifest: str | None,
+    config_path: str | None,
     skymap_path: str | None,
     tract_id: int,
     patch_text: str,
@@ -33,43 +73,56 @@ def build(
     workers: int,
     scheduler: str | None,
     seed: int,
-    n_noise: int,
-    psf_size: int,
+    n_noise: int | None,
+    psf_size: int | None,
     compression: str,
     overwrite: bool,
     quiet: bool,
 ) -> None:
-    """Coadd EXPOSURE_FILES into the cells of one patch and write them to --out.
+    """Coadd exposure files into the cells of one patch and write them to --out.
+
+    Inputs are cellcoadd exposure files given as EXPOSURE_FILES, and/or survey files
+    (LSST, DES, other multi-extension layouts) listed in a --manifest with their PSF
+    model files. Everything that can be checked is checked before the build: the output
+    path, every input's headers, the mask bits the configuration needs. Pixels are read
+    by the workers, one exposure cut to one cell at a time.
 
     \b
     Examples:
       cellcoadd build sim/visit*.fits --skymap sim/skymap.json --tract 0 --patch 0,0 \\
           --out patch.fits --workers 2
-      cellcoadd build exp/*.fits --skymap skymap.json --tract 0 --patch 1,2 \\
-          --out patch.h5 --scheduler tcp://127.0.0.1:8786
+      cellcoadd build --manifest des.toml --config des_build.toml --skymap skymap.json \\
+          --tract 0 --patch 1,2 --out patch.h5 --scheduler tcp://127.0.0.1:8786
     """
     from tqdm.auto import tqdm
 
     from cellcoadd.builder import build_patch
     from cellcoadd.io.api import write
-    from cellcoadd.io.exposure_io import read_exposure
+    from cellcoadd.io.exposure_source import ExposureFile
+    from cellcoadd.io.manifest_io import read_build_config, read_manifest, sources_from_manifest
     from cellcoadd.model.build_config import BuildConfig
+    from cellcoadd.model.sources import describe
 
-    if os.path.exists(out) and not overwrite:  # fail before the work, not after
-        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
-    config = BuildConfig(n_noise=n_noise, psf_size=psf_size)
+    if not exposure_files and manifest is None:
+        raise click.UsageError("give EXPOSURE_FILES or --manifest")
+    check_output_path(out, overwrite)
+    config = read_build_config(config_path) if config_path else BuildConfig()
+    overrides = {k: v for k, v in (("n_noise", n_noise), ("psf_size", psf_size)) if v is not None}
+    if overrides:
+        config = BuildConfig.model_validate({**config.model_dump(), **overrides})
     the_map = load_skymap(skymap_path)
     patch = the_map[tract_id].patch(*parse_pair(patch_text))
     start = time.perf_counter()
-    exposures = [
-        read_exposure(path)
-        for path in tqdm(exposure_files, desc="reading exposures", unit="file", disable=quiet)
-    ]
+    sources: list[Any] = [ExposureFile(path) for path in exposure_files]
+    if manifest is not None:
+        sources += sources_from_manifest(read_manifest(manifest), Path(manifest).parent)
+    # headers read once, now: a missing HDU or keyword is found before the build
+    inputs = [describe(s) for s in tqdm(sources, desc="headers", unit="file", disable=quiet)]
     coadd = build_patch(
-        patch, exposures, config, seed, progress=not quiet, workers=workers, scheduler=scheduler
+        patch, inputs, config, seed, progress=not quiet, workers=workers, scheduler=scheduler
     )
     write(
-        coadd, out, compression=None if compression == "none" else compression, overwrite=overwrite
+        coadd, out, compression=None if compression == "none" else "lossless", overwrite=overwrite
     )
     used = sum(r.status == "used" for c in coadd.cells.values() for r in c.inputs)
     empty = sum(c.is_empty for c in coadd.cells.values())

@@ -18,6 +18,7 @@ from pydantic import BaseModel
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.manifest import Manifest
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchMetadata, parse_format_version
 
@@ -28,6 +29,7 @@ SCHEMA_MODELS: dict[str, type[BaseModel]] = {
     "SkyMapConfig": SkyMapConfig,
     "BuildConfig": BuildConfig,
     "MaskBits": MaskBits,
+    "Manifest": Manifest,
 }
 
 _DRAFT = "https://json-schema.org/draft/2020-12/schema"
