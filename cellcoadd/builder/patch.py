@@ -202,7 +202,7 @@ def _broken_or_pending(future: Future) -> bool:
 
 def build_patch(
     patch: Patch,
-    exposures: Sequence[Exposure | ExposureSource],
+    exposures: Sequence[Exposure | ExposureSource | DescribedSource],
     config: BuildConfig | None = None,
     seed: int = 0,
     executor: Executor | None = None,
