@@ -58,17 +58,16 @@ def _install_inputs(inputs: list[Input]) -> None:
 
 def _build_one(
     cell: Cell,
-    candidates: list[Input] | list[int],
+    candidates: Sequence[Input | int],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
 ) -> CellCoadd:
     """Build one cell from its candidate inputs (or their indices in the pool table)."""
     try:
-        if candidates and isinstance(candidates[0], int):
-            candidates = [_pool_inputs[i] for i in candidates]  # type: ignore[index]
+        inputs = [_pool_inputs[i] if isinstance(i, int) else i for i in candidates]
         # the cheap batched search over-selects; the exact test decides, here in the task
-        near = [e for e in candidates if rough_exposure_box(cell, header_of(e)) is not None]  # type: ignore[arg-type]
+        near = [e for e in inputs if rough_exposure_box(cell, header_of(e)) is not None]
         return build_cell(cell, near, config, seed, mask_bits=mask_bits)
     except Exception as err:
         # the traceback text travels with the error across process boundaries
@@ -84,7 +83,7 @@ def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuild
 
 def _run_on(
     pool: Executor,
-    tasks: list[tuple[Cell, list[Exposure] | list[int]]],
+    tasks: Sequence[tuple[Cell, Sequence[Input | int]]],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
@@ -118,7 +117,7 @@ def _run_on(
 
 def _run_on_dask(
     client: Any,
-    tasks: list[tuple[Cell, list[int]]],
+    tasks: Sequence[tuple[Cell, Sequence[Input | int]]],
     exposures: list[Input],
     config: BuildConfig,
     seed: int,

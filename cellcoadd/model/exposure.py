@@ -22,6 +22,7 @@ import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TypeAlias
 
 import galsim
 import numpy as np
@@ -34,7 +35,9 @@ from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf import PsfModel, as_psf_model
 
-PsfLike = PsfModel | galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
+PsfLike: TypeAlias = (
+    PsfModel | galsim.GSObject | Callable[[float, float], galsim.GSObject] | galsim.Image
+)
 
 
 @dataclass(eq=False, frozen=True)
@@ -160,7 +163,8 @@ class Exposure:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.image.shape  # type: ignore[return-value]
+        ny, nx = self.image.shape
+        return (ny, nx)
 
     @cached_property
     def background_variance(self) -> float:
@@ -170,6 +174,7 @@ class Exposure:
         """
         if isinstance(self.variance, float):
             return self.variance
+        assert self.valid_box is not None  # set at construction
         values = self.variance[self.valid_box.slices]
         values = values[np.isfinite(values)]
         return float(np.median(values)) if values.size else float("nan")
@@ -182,7 +187,8 @@ class Exposure:
     def psf_model(self) -> PsfModel:
         """The PSF as a :class:`~cellcoadd.model.psf.PsfModel` (``psf`` itself, or its
         wrapper for the bare forms)."""
-        return self._psf_model  # type: ignore[attr-defined, no-any-return]
+        model: PsfModel = self.__dict__["_psf_model"]  # set at construction
+        return model
 
     def draw_psf(
         self, x: float, y: float, box: Box, center: tuple[float, float] | None = None
@@ -211,13 +217,14 @@ def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:
     """
     if not isinstance(wcs, WCS):
         raise ExposureError(f"{name}: wcs must be a celestial astropy.wcs.WCS")
+    checked: WCS = wcs
     try:
-        celestial, n_axes = wcs.has_celestial, wcs.pixel_n_dim
+        celestial, n_axes = checked.has_celestial, checked.pixel_n_dim
         if celestial and n_axes == 2:
-            wcs = canonical_wcs(wcs)
-            axes = (wcs.wcs.lngtyp, wcs.wcs.lattyp)
+            checked = canonical_wcs(checked)
+            axes = (checked.wcs.lngtyp, checked.wcs.lattyp)
             ny, nx = shape
-            jacobian = local_jacobian(wcs, (nx - 1) / 2.0, (ny - 1) / 2.0)
+            jacobian = local_jacobian(checked, (nx - 1) / 2.0, (ny - 1) / 2.0)
     except Exception as err:  # astropy raises several types for broken WCSs
         raise ExposureError(f"{name}: the WCS cannot be evaluated ({_one_line(err)})") from None
     if not celestial:
@@ -231,7 +238,7 @@ def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:
     area = abs(float(np.linalg.det(jacobian))) if np.all(np.isfinite(jacobian)) else 0.0
     if not area > 0.0:
         raise ExposureError(f"{name}: the WCS is singular or not finite at the image centre")
-    return wcs
+    return checked
 
 
 def _one_line(err: Exception) -> str:
@@ -242,9 +249,9 @@ def _one_line(err: Exception) -> str:
 def _checked_variance(name: str, variance: object, shape: tuple[int, ...]) -> float | np.ndarray:
     """A scalar (float) or an image-shaped float64 array; zero, negative or non-finite
     values are allowed here and lead to per-cell rejections (``bad_weight``)."""
-    if np.ndim(variance) == 0:
+    if np.ndim(variance) == 0:  # type: ignore[arg-type]  # any object: checked here
         try:
-            return float(variance)  # type: ignore[arg-type]
+            return float(variance)  # type: ignore[arg-type]  # a 0-d array or number
         except (TypeError, ValueError):
             raise ExposureError(f"{name}: variance must be a number or an array") from None
     array = np.asarray(variance)

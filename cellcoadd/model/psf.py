@@ -251,7 +251,11 @@ class _FileModel(PsfModel):
         return {**self.__dict__, "_model": None}
 
     def __eq__(self, other: object) -> bool:
-        return type(other) is type(self) and other.sha256 == self.sha256  # type: ignore[attr-defined]
+        return (
+            isinstance(other, _FileModel)
+            and type(other) is type(self)
+            and other.sha256 == self.sha256
+        )
 
     def __hash__(self) -> int:
         return hash((type(self).__name__, self.sha256))
@@ -393,5 +397,5 @@ def as_psf_model(psf: object) -> PsfModel:
     if isinstance(psf, galsim.Image):
         return ImagePsf(psf)
     if isinstance(psf, galsim.GSObject) or callable(psf):
-        return GalSimPsf(psf)  # type: ignore[arg-type]
+        return GalSimPsf(psf)
     raise PsfError(f"psf must be a PsfModel, a GSObject, a callable or a galsim.Image, got {psf!r}")
