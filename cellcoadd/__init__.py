@@ -54,6 +54,13 @@ _EXPORTS: dict[str, str] = {
     "read_exposure": "cellcoadd.io",
     "write": "cellcoadd.io",
     "write_exposure": "cellcoadd.io",
+    "read_lsst_exposure": "cellcoadd.io",
+    "read_des_exposure": "cellcoadd.io",
+    "read_mef_exposure": "cellcoadd.io",
+    "ExposureFile": "cellcoadd.io",
+    "MefExposureFile": "cellcoadd.io",
+    "MefLayout": "cellcoadd.io",
+    "ExposureSource": "cellcoadd.model.sources",
     "build_cell": "cellcoadd.builder",
     "build_patch": "cellcoadd.builder",
     "measure_metacal": "cellcoadd.shear",
@@ -77,6 +84,8 @@ __all__ = [
     "EmptyCellError",
     "Exposure",
     "ExposureError",
+    "ExposureFile",
+    "ExposureSource",
     "FORMAT_VERSION",
     "GalSimPsf",
     "ImagePsf",
@@ -84,6 +93,8 @@ __all__ = [
     "InputRecord",
     "InputStatus",
     "MaskBits",
+    "MefExposureFile",
+    "MefLayout",
     "Patch",
     "PatchCoadd",
     "PatchMetadata",
@@ -105,7 +116,10 @@ __all__ = [
     "plot_patch_layout",
     "read",
     "read_cell",
+    "read_des_exposure",
     "read_exposure",
+    "read_lsst_exposure",
+    "read_mef_exposure",
     "to_ngmix",
     "to_observation",
     "trim_to_cell",
@@ -153,11 +167,17 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         trim_to_patch,
     )
     from cellcoadd.io import (
+        ExposureFile,
+        MefExposureFile,
+        MefLayout,
         convert,
         open,
         read,
         read_cell,
+        read_des_exposure,
         read_exposure,
+        read_lsst_exposure,
+        read_mef_exposure,
         write,
         write_exposure,
     )
@@ -175,6 +195,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         PsfexPsf,
         PsfModel,
     )
+    from cellcoadd.model.sources import ExposureSource
     from cellcoadd.pipelines import ValidationSettings, validate_shear
     from cellcoadd.plots import plot_patch_layout
     from cellcoadd.shear import measure_metacal, to_ngmix, to_observation

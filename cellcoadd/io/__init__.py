@@ -2,16 +2,47 @@
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io.api import convert, file_format, open, read, read_cell, write
-from cellcoadd.io.exposure_io import read_exposure, write_exposure
+from cellcoadd.io.exposure_io import read_exposure, read_exposure_header, write_exposure
+from cellcoadd.io.exposure_source import ExposureFile
+from cellcoadd.io.manifest_io import read_build_config, read_manifest, sources_from_manifest
+from cellcoadd.io.mef_layout import (
+    DES_BAD_MASK_BITS,
+    DES_LAYOUT,
+    LSST_BAD_MASK_BITS,
+    LSST_LAYOUT,
+    MefLayout,
+    ZeroPointKey,
+)
+from cellcoadd.io.survey_readers import (
+    MefExposureFile,
+    read_des_exposure,
+    read_lsst_exposure,
+    read_mef_exposure,
+)
 
 __all__ = [
     "CellCoaddFormatError",
+    "DES_BAD_MASK_BITS",
+    "DES_LAYOUT",
+    "ExposureFile",
+    "LSST_BAD_MASK_BITS",
+    "LSST_LAYOUT",
+    "MefExposureFile",
+    "MefLayout",
+    "ZeroPointKey",
     "convert",
     "file_format",
     "open",
     "read",
     "read_cell",
+    "read_des_exposure",
+    "read_build_config",
     "read_exposure",
+    "read_exposure_header",
+    "read_lsst_exposure",
+    "read_manifest",
+    "read_mef_exposure",
+    "sources_from_manifest",
     "write",
     "write_exposure",
 ]

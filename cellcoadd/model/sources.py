@@ -5,8 +5,8 @@ them into every worker) does not scale. An :class:`ExposureSource` says what an 
 is from its headers alone (:class:`ExposureHeader`: identity, band, WCS, shape, valid
 region) and loads its pixels, cut to a box of detector pixels, when a cell needs them.
 Sources are small picklable objects (paths and options), so each worker process loads
-its own inputs. :mod:`cellcoadd.io.exposure_sources` implements them for exposure files
-of every supported layout; any object with the same two methods works too.
+its own inputs. :class:`cellcoadd.io.ExposureFile` (cellcoadd's own files) and
+:class:`cellcoadd.io.MefExposureFile` (LSST, DES and other layouts) implement them; any object with the same two methods works too.
 """
 
 from __future__ import annotations

@@ -1,0 +1,498 @@
+"""Survey single-epoch exposure files (LSST, DES, any multi-extension FITS layout) as
+:class:`~cellcoadd.model.sources.ExposureSource` objects.
+
+:class:`MefExposureFile` reads one detector exposure laid out as a :class:`MefLayout`
+(:mod:`cellcoadd.io.mef_layout`): ``header()`` reads FITS headers only, ``load(box)``
+reads only the pixels of ``box`` of each plane (fitsio slicing, tile-compressed HDUs
+included), each once, and returns an :class:`~cellcoadd.model.exposure.Exposure` whose
+``origin`` is the box's start and whose WCS is the file's WCS shifted to the cutout
+(``CRPIX`` minus the offset: exact for TAN, TAN-SIP and TPV, whose distortions are
+polynomials about ``CRPIX``). A source holds its paths, layout, options and PSF model
+only; nothing stays open, so it pickles to worker processes.
+
+Every problem with a file (missing file or HDU, shapes that differ between HDUs, no zero
+point, an unnamed mask bit, unusable pixels) is a
+:class:`~cellcoadd.errors.CellCoaddFormatError` naming the file and the HDU.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import fitsio
+import numpy as np
+from astropy.io import fits
+from astropy.wcs import WCS
+
+from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
+from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.wcs_utils import canonical_wcs
+from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, HduRef, MefLayout, zero_point_from
+from cellcoadd.model.exposure import Exposure, PsfLike
+from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf import PiffPsf, PsfexPsf
+from cellcoadd.model.sources import ExposureHeader, ExposureSource, cutout_box
+
+PathLike = str | os.PathLike[str]
+
+
+def psf_from(psf: PsfLike | PathLike) -> PsfLike:
+    """A PSF model from a path (``.psf``: PSFEx, anything else: Piff); others as given."""
+    if not isinstance(psf, (str, os.PathLike)):
+        return psf
+    path = os.fspath(psf)
+    try:
+        return PsfexPsf(path) if path.lower().endswith(".psf") else PiffPsf(path)
+    except PsfError as err:
+        raise CellCoaddFormatError(path, f"cannot read the PSF model ({err})") from None
+
+
+@dataclass(frozen=True, eq=False)
+class _Meta:
+    """What the headers of an exposure file say."""
+
+    header: ExposureHeader
+    wcs_header: fits.Header
+    image: int
+    mask: int
+    plane: int
+    background: int | None
+
+
+class _Headers:
+    """An open FITS file whose headers are each read at most once."""
+
+    def __init__(self, path: str, fits_file: fitsio.FITS):
+        self.path = path
+        self.fits = fits_file
+        self._cache: dict[int, fitsio.FITSHDR] = {}
+
+    def fail(self, index: int | None, problem: str) -> CellCoaddFormatError:
+        where = f"HDU {self.label(index)}: " if index is not None else ""
+        return CellCoaddFormatError(self.path, where + problem)
+
+    def label(self, index: int) -> str:
+        name = self.fits[index].get_extname()
+        return f"{index} ({name})" if name else str(index)
+
+    def header(self, index: int) -> fitsio.FITSHDR:
+        if index not in self._cache:
+            self._cache[index] = self.fits[index].read_header()
+        return self._cache[index]
+
+    def index(self, ref: HduRef, what: str) -> int:
+        """HDU number of ``ref``: a number, an EXTNAME, else an EXTTYPE (no case)."""
+        count = len(self.fits)
+        if isinstance(ref, int):
+            if 0 <= ref < count:
+                return ref
+        else:
+            wanted = ref.strip().upper()
+            for i in range(count):
+                if self.fits[i].get_extname().strip().upper() == wanted:
+                    return i
+            for i in range(count):
+                if str(self.header(i).get("EXTTYPE", "")).strip().upper() == wanted:
+                    return i
+        names = [self.label(i) for i in range(count)]
+        raise CellCoaddFormatError(self.path, f"no {what} HDU {ref!r} (HDUs: {names})")
+
+    def dims(self, index: int, what: str) -> tuple[int, int]:
+        dims: tuple[int, ...] = tuple(int(d) for d in self.fits[index].get_dims())
+        if self.fits[index].get_exttype() != "IMAGE_HDU" or len(dims) != 2 or 0 in dims:
+            raise self.fail(index, f"the {what} is not a 2-D image (dimensions {dims})")
+        return (dims[0], dims[1])
+
+    def pixels(self, index: int, box: Box, what: str) -> np.ndarray:
+        try:
+            data = self.fits[index][box.y_start : box.y_stop, box.x_start : box.x_stop]
+        except (OSError, ValueError) as err:
+            raise self.fail(index, f"cannot read the {what} pixels ({err})") from None
+        data = np.asarray(data)
+        if not data.dtype.isnative:
+            data = data.astype(data.dtype.newbyteorder("="))
+        return data
+
+
+#: Keywords of a tile-compressed HDU's table header that are not the image's.
+_STRUCTURAL = {"XTENSION", "SIMPLE", "BITPIX", "PCOUNT", "GCOUNT", "TFIELDS", "EXTEND"}
+
+
+def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Header:
+    """The image's header as astropy sees it (compression keywords dropped)."""
+    compressed = "ZIMAGE" in header
+    cards = []
+    for record in header.records():
+        name = str(record.get("name") or "").upper()
+        if (
+            name in _STRUCTURAL
+            or name.startswith(("NAXIS", "TTYPE", "TFORM", "TUNIT"))
+            or name in ("COMMENT", "HISTORY", "")
+            or (compressed and name.startswith("Z"))
+        ):
+            continue
+        try:
+            cards.append(fits.Card.fromstring(record["card_string"]))
+        except Exception:  # a card astropy cannot parse is not a WCS card: left out
+            continue
+    out = fits.Header(cards)
+    out["NAXIS"] = 2
+    out["NAXIS1"] = shape[1]
+    out["NAXIS2"] = shape[0]
+    return out
+
+
+def _wcs(path: str, header: fits.Header, what: str) -> WCS:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            wcs = WCS(header)
+    except Exception as err:  # astropy raises several types for broken WCSs
+        raise CellCoaddFormatError(path, f"{what}: cannot parse the WCS ({err})") from None
+    if not wcs.has_celestial or wcs.pixel_n_dim != 2:
+        raise CellCoaddFormatError(path, f"{what}: no celestial 2-D WCS in the header")
+    return wcs
+
+
+def _shifted_header(header: fits.Header, box: Box) -> fits.Header:
+    """``header`` for the cutout ``box``: CRPIX minus the offset, NAXIS the box's."""
+    out = header.copy()
+    out["CRPIX1"] = float(header.get("CRPIX1", 0.0)) - box.x_start
+    out["CRPIX2"] = float(header.get("CRPIX2", 0.0)) - box.y_start
+    out["NAXIS1"], out["NAXIS2"] = box.nx, box.ny
+    return out
+
+
+class MefExposureFile(ExposureSource):
+    """One detector exposure in a multi-extension FITS file of a known layout.
+
+    Parameters
+    ----------
+    path : path-like
+        The exposure file (``.fits`` or tile-compressed ``.fits.fz``).
+    layout : MefLayout
+        Where things are (:data:`~cellcoadd.io.mef_layout.LSST_LAYOUT`,
+        :data:`~cellcoadd.io.mef_layout.DES_LAYOUT` or your own).
+    psf : PsfModel, other PSF form of Exposure, or path
+        The PSF model; a path ending in ``.psf`` is read as a PSFEx model, any other path
+        as a Piff model (read now: errors come early, and the model's bytes travel with
+        the source).
+    zero_point : float, optional
+        Used when no keyword of ``layout.zero_point_keys`` gives one.
+    background : path-like, optional
+        A background image file (its ``SCI`` HDU, else its first image HDU), subtracted.
+    visit, detector : int, optional
+        Identity, instead of the header's.
+    band : str, optional
+        Band, instead of the header's.
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        layout: MefLayout,
+        psf: PsfLike | PathLike,
+        *,
+        zero_point: float | None = None,
+        background: PathLike | None = None,
+        visit: int | None = None,
+        detector: int | None = None,
+        band: str | None = None,
+    ):
+        if not isinstance(layout, MefLayout):
+            raise TypeError(f"layout must be a MefLayout, got {layout!r}")
+        self.path = os.fspath(path)
+        self.layout = layout
+        self.psf = psf_from(psf)
+        self.zero_point = zero_point
+        self.background = os.fspath(background) if background is not None else None
+        self.visit = visit
+        self.detector = detector
+        self.band = band
+
+    def __repr__(self) -> str:
+        return f"MefExposureFile({self.path!r}, layout={self.layout.name!r})"
+
+    # -- ExposureSource --------------------------------------------------------------
+
+    def header(self) -> ExposureHeader:
+        """Identity, band, WCS, shape and valid region, from the headers only."""
+        with _OpenFile(self.path) as headers:
+            meta = self._meta(headers)
+        if self.background is not None:
+            with _OpenFile(self.background) as bkg:
+                self._background_index(bkg, meta.header.shape)
+        return meta.header
+
+    def load(self, box: Box | None = None) -> Exposure:
+        """The exposure, or its cutout over ``box`` (detector pixels, clipped)."""
+        with _OpenFile(self.path) as headers:
+            meta = self._meta(headers)
+            cut = cutout_box(meta.header, box)
+            image = headers.pixels(meta.image, cut, "image")
+            mask = headers.pixels(meta.mask, cut, "mask")
+            plane = headers.pixels(meta.plane, cut, "variance/weight")
+            background = None
+            if meta.background is not None and self.background is None:
+                background = headers.pixels(meta.background, cut, "background")
+            if not np.issubdtype(mask.dtype, np.integer):
+                raise headers.fail(meta.mask, f"the mask must be integer, got {mask.dtype}")
+            mask = mask.astype(np.int32)
+            names = meta.header.mask_bits
+            unknown = names.unknown_bits(mask)
+            if unknown:
+                raise headers.fail(
+                    meta.mask, f"mask bits {unknown:#x} have no name (named: {sorted(names.bits)})"
+                )
+        if self.background is not None:
+            with _OpenFile(self.background) as bkg:
+                index = self._background_index(bkg, meta.header.shape)
+                background = bkg.pixels(index, cut, "background")
+        if background is not None:
+            image = image - background
+        variance = self._variance(plane, mask, meta)
+        wcs = _wcs(self.path, _shifted_header(meta.wcs_header, cut), "cutout")
+        try:
+            return Exposure(
+                image=image,
+                wcs=wcs,
+                variance=variance,
+                psf=self.psf,
+                visit=meta.header.visit,
+                detector=meta.header.detector,
+                band=meta.header.band,
+                zero_point=meta.header.zero_point,
+                mask=mask,
+                mask_bits=meta.header.mask_bits,
+                origin=(cut.x_start, cut.y_start),
+            )
+        except ExposureError as err:
+            raise CellCoaddFormatError(self.path, str(err)) from None
+
+    # -- reading -----------------------------------------------------------------------
+
+    def _variance(self, plane: np.ndarray, mask: np.ndarray, meta: _Meta) -> np.ndarray:
+        if self.layout.weight_hdu is None:
+            return plane
+        weight = plane.astype(np.float64)
+        bad = ~(weight > 0) | ~np.isfinite(weight)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            variance = np.where(bad, np.nan, 1.0 / weight)
+        mask |= np.int32(meta.header.mask_bits.value(self.layout.zero_weight_bit)) * bad
+        return variance
+
+    def _meta(self, headers: _Headers) -> _Meta:
+        layout = self.layout
+        primary = headers.header(0)
+        image = headers.index(layout.image_hdu, "image")
+        mask = headers.index(layout.mask_hdu, "mask")
+        plane_ref = layout.variance_hdu if layout.variance_hdu is not None else layout.weight_hdu
+        plane_what = "variance" if layout.variance_hdu is not None else "weight"
+        plane = headers.index(plane_ref, plane_what)  # type: ignore[arg-type]
+        shape = headers.dims(image, "image")
+        for index, what in ((mask, "mask"), (plane, plane_what)):
+            dims = headers.dims(index, what)
+            if dims != shape:
+                raise headers.fail(
+                    index, f"the {what} has shape {dims}, the image HDU {image} {shape}"
+                )
+        background = None
+        if not layout.background_subtracted:
+            if layout.background_hdu is not None:
+                background = headers.index(layout.background_hdu, "background")
+                if headers.dims(background, "background") != shape:
+                    raise headers.fail(background, f"the background is not of shape {shape}")
+            elif self.background is None:
+                raise headers.fail(
+                    image, "the image is not background subtracted: give a background file"
+                )
+        image_header = headers.header(image)
+        searched = [(0, primary), (image, image_header)] if image != 0 else [(0, primary)]
+        wcs_header = _astropy_header(image_header, shape)
+        wcs = canonical_wcs(_wcs(self.path, wcs_header, f"HDU {headers.label(image)}"))
+        exposure_header = ExposureHeader(
+            visit=self._identity(headers, searched, layout.visit_keys, self.visit, "visit"),
+            detector=self._identity(
+                headers, searched, layout.detector_keys, self.detector, "detector"
+            ),
+            band=self._band(headers, searched),
+            wcs=wcs,
+            shape=shape,
+            valid_box=Box.from_shape(shape),
+            zero_point=self._zero_point(headers, searched),
+            mask_bits=self._mask_bits(headers, mask),
+        )
+        return _Meta(
+            header=exposure_header,
+            wcs_header=wcs_header,
+            image=image,
+            mask=mask,
+            plane=plane,
+            background=background,
+        )
+
+    def _identity(
+        self,
+        headers: _Headers,
+        searched: list[tuple[int, fitsio.FITSHDR]],
+        keys: tuple[str, ...],
+        given: int | None,
+        what: str,
+    ) -> int:
+        if given is not None:
+            return given
+        for key in keys:
+            for index, header in searched:
+                if key in header:
+                    value = header[key]
+                    if isinstance(value, str) and value.strip().lstrip("-").isdigit():
+                        value = int(value)
+                    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                        raise headers.fail(index, f"{key} = {value!r} is not an integer {what}")
+                    return int(value)
+        hdus = [headers.label(i) for i, _ in searched]
+        raise CellCoaddFormatError(
+            self.path, f"no {what} keyword {list(keys)} in HDUs {hdus}: pass {what}="
+        )
+
+    def _band(self, headers: _Headers, searched: list[tuple[int, fitsio.FITSHDR]]) -> str:
+        if self.band is not None:
+            return self.band
+        for key in self.layout.band_keys:
+            for _, header in searched:
+                value = header.get(key)
+                if isinstance(value, str) and value.strip():
+                    return value.strip()
+        filter_key = self.layout.filter_key
+        if filter_key is not None:
+            for _, header in searched:
+                value = header.get(filter_key)
+                if isinstance(value, str) and value.split():
+                    return value.split()[0].split("_")[0]
+        keys = [*self.layout.band_keys, *([filter_key] if filter_key else [])]
+        hdus = [headers.label(i) for i, _ in searched]
+        raise CellCoaddFormatError(self.path, f"no band keyword {keys} in HDUs {hdus}: pass band=")
+
+    def _zero_point(self, headers: _Headers, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
+        for key in self.layout.zero_point_keys:
+            for _, header in searched:
+                if key.keyword in header:
+                    value = zero_point_from(key.kind, header[key.keyword])
+                    if value is not None:
+                        return value
+        if self.zero_point is not None:
+            return float(self.zero_point)
+        keys = [key.keyword for key in self.layout.zero_point_keys]
+        hdus = [headers.label(i) for i, _ in searched]
+        raise CellCoaddFormatError(
+            self.path, f"no zero point: no usable keyword {keys} in HDUs {hdus}; pass zero_point="
+        )
+
+    def _mask_bits(self, headers: _Headers, mask: int) -> MaskBits:
+        layout = self.layout
+        bits = dict(layout.mask_bits) if layout.mask_bits is not None else {}
+        if layout.mask_bits is None:
+            header = headers.header(mask)
+            for key in header.keys():
+                if key.upper().startswith("MP_"):
+                    value = header[key]
+                    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                        raise headers.fail(mask, f"{key} = {value!r} is not a bit number")
+                    bits[key[3:].upper()] = int(value)
+            if not bits:
+                raise headers.fail(mask, "no MP_<NAME> mask-plane keywords")
+        if layout.weight_hdu is not None and layout.zero_weight_bit not in bits:
+            free = [b for b in range(31) if b not in bits.values()]
+            if not free:
+                raise headers.fail(mask, "no free mask bit for zero weights")
+            bits[layout.zero_weight_bit] = free[0]
+        try:
+            return MaskBits(bits=bits)
+        except ValueError as err:
+            raise headers.fail(mask, f"bad mask-bit definitions ({err})") from None
+
+    def _background_index(self, headers: _Headers, shape: tuple[int, int]) -> int:
+        index = None
+        for i in range(len(headers.fits)):
+            if headers.fits[i].get_extname().strip().upper() == "SCI":
+                index = i
+                break
+        if index is None:
+            for i in range(len(headers.fits)):
+                hdu = headers.fits[i]
+                if hdu.get_exttype() == "IMAGE_HDU" and len(hdu.get_dims()) == 2:
+                    index = i
+                    break
+        if index is None:
+            raise headers.fail(None, "no background image HDU")
+        dims = headers.dims(index, "background")
+        if dims != shape:
+            raise headers.fail(index, f"the background has shape {dims}, the image {shape}")
+        return index
+
+
+class _OpenFile:
+    """``with _OpenFile(path) as headers``: the file open for the block only."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._fits: Any = None
+
+    def __enter__(self) -> _Headers:
+        if not Path(self.path).is_file():
+            raise CellCoaddFormatError(self.path, "no such file")
+        try:
+            self._fits = fitsio.FITS(self.path)
+        except (OSError, ValueError) as err:
+            raise CellCoaddFormatError(self.path, f"not a readable FITS file ({err})") from None
+        return _Headers(self.path, self._fits)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._fits is not None:
+            self._fits.close()
+            self._fits = None
+
+
+def read_mef_exposure(
+    path: PathLike,
+    layout: MefLayout,
+    psf: PsfLike | PathLike,
+    **options: Any,
+) -> Exposure:
+    """The whole detector exposure of ``path`` (options: see :class:`MefExposureFile`)."""
+    return MefExposureFile(path, layout, psf, **options).load()
+
+
+def read_lsst_exposure(
+    path: PathLike,
+    psf: PsfLike | PathLike,
+    zero_point: float | None = None,
+    **options: Any,
+) -> Exposure:
+    """An LSST pipelines single-detector ``ExposureF`` file (``calexp``, ``visit_image``).
+
+    The PSF, stored by the pipelines in an afw archive HDU cellcoadd cannot read, is
+    required (a model, or a ``.psf`` PSFEx / Piff file). The zero point comes from
+    ``FLUXMAG0`` or ``BUNIT = 'nJy'`` (31.4) when present, else from ``zero_point``.
+    """
+    return MefExposureFile(path, LSST_LAYOUT, psf, zero_point=zero_point, **options).load()
+
+
+def read_des_exposure(
+    image_path: PathLike,
+    psf_path: PsfLike | PathLike,
+    bkg_path: PathLike | None = None,
+    *,
+    zero_point: float | None = None,
+    **options: Any,
+) -> Exposure:
+    """A DES single-epoch file (``SCI``/``MSK``/``WGT``), its PSFEx model and optional
+    ``_bkg`` background file; zero point from ``MAGZERO``/``MAGZP`` else ``zero_point``."""
+    source = MefExposureFile(
+        image_path, DES_LAYOUT, psf_path, zero_point=zero_point, background=bkg_path, **options
+    )
+    return source.load()
