@@ -28,9 +28,11 @@ bench: $(VENV)/.installed-test
 
 lint: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check cellcoadd tests benchmarks
+	$(VENV)/bin/ruff format --check cellcoadd tests benchmarks
+	$(VENV)/bin/mypy cellcoadd/
 
 schemas: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd schemas --out schemas/
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .mypy_cache

@@ -1,6 +1,6 @@
 """Metacal shear bias on cell coadds vs a single epoch, beside the paper's Table 1.
 
-Runs :func:`cellcoadd.shear.validate_shear` at realistic S/N (10-50 by default) in coadd
+Runs :func:`cellcoadd.pipelines.validate_shear` at realistic S/N (10-50 by default) in coadd
 and single-epoch modes and prints m1, c1, c2 with jackknife errors, the objects used, the
 CPU time and what a run at the paper's precision (sigma_m = 4e-4) would cost. The default
 size takes ~15 minutes on 2 cores (~0.45 CPU s per pair and mode).

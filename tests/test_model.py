@@ -13,14 +13,11 @@ from cellcoadd.errors import CellCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.model.build_config import BuildConfig
-from cellcoadd.model.cell_coadd import (
-    CellCoadd,
-    wcs_from_record,
-    wcs_to_record,
-)
+from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import INPUT_STATUSES, REJECTION_REASONS, InputRecord
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
+from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 
 CONFIG = SkyMapConfig(
     cell_inner=6, cell_border=2, cells_per_patch=3, patch_border_cells=1, patches_per_tract=2

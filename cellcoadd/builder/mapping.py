@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numba
 import numpy as np
@@ -97,11 +97,31 @@ class PixelMapping:
     """
 
     box: Box
-    x: np.ndarray = _Interpolated()  # type: ignore[assignment]
-    y: np.ndarray = _Interpolated()  # type: ignore[assignment]
-    area_ratio: np.ndarray = _Interpolated()  # type: ignore[assignment]
-    max_error: float
-    grid_step: int
+    if TYPE_CHECKING:
+        # What the _Interpolated fields below look like from outside: they read as arrays,
+        # accept a _Deferred at construction, and are required (their __get__ refuses class
+        # access, so dataclasses see no default; mypy would take the descriptor for one).
+        x: np.ndarray
+        y: np.ndarray
+        area_ratio: np.ndarray
+        max_error: float
+        grid_step: int
+
+        def __init__(
+            self,
+            box: Box,
+            x: np.ndarray | _Deferred,
+            y: np.ndarray | _Deferred,
+            area_ratio: np.ndarray | _Deferred,
+            max_error: float,
+            grid_step: int,
+        ) -> None: ...
+    else:
+        x: np.ndarray = _Interpolated()
+        y: np.ndarray = _Interpolated()
+        area_ratio: np.ndarray = _Interpolated()
+        max_error: float
+        grid_step: int
 
     @property
     def is_complete(self) -> bool:
@@ -109,6 +129,17 @@ class PixelMapping:
         if _Interpolated.is_deferred(self, "x") and _Interpolated.is_deferred(self, "y"):
             return True  # interpolated from an accepted grid, whose values are all finite
         return bool(np.isfinite(self.x).all() and np.isfinite(self.y).all())
+
+
+class PixelPositions(Protocol):
+    """Exposure pixel positions ``x`` and ``y`` of some coadd pixels: a
+    :class:`PixelMapping` or a subset of its pixels (see :func:`footprint_box`)."""
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def y(self) -> np.ndarray: ...
 
 
 def _snap_unit_area(area_ratio: np.ndarray) -> None:
@@ -414,7 +445,7 @@ def map_box(
     return _exact_mapping(coadd_wcs, box, exposure_wcs)
 
 
-def footprint_box(mapping: PixelMapping, half_width: int = KERNEL_HALF_WIDTH) -> Box:
+def footprint_box(mapping: PixelPositions, half_width: int = KERNEL_HALF_WIDTH) -> Box:
     """Exposure pixels touched by the resampling kernel taps of all mapped pixels.
 
     Taps run from ``floor(x) - (half_width - 1)`` to ``floor(x) + half_width`` (Lanczos-3:

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from typing import Any, Literal
 
 import click
 import numpy as np
 
 from cellcoadd.analysis import (
+    FocalPlaneConfig,
     decam_like_focal_plane,
     default_cell_size_arcmin,
     lsst_focal_plane,
@@ -17,7 +20,10 @@ from cellcoadd.analysis import (
     rejection_table,
 )
 
-_CAMERAS = {"lsst": lsst_focal_plane, "decam": decam_like_focal_plane}
+_CAMERAS: dict[str, Callable[[], FocalPlaneConfig]] = {
+    "lsst": lsst_focal_plane,
+    "decam": decam_like_focal_plane,
+}
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -63,8 +69,8 @@ def rejection(
     cell_sizes: tuple[float, ...],
     n_cells: int,
     n_visits: int,
-    dither: str,
-    rotation: str,
+    dither: Literal["random", "spiral", "both"],
+    rotation: Literal["random", "none"],
     camera: str,
     seed: int,
     out: str | None,
@@ -84,7 +90,9 @@ def rejection(
       cellcoadd analyze rejection --out docs/images/rejection.png
     """
     sizes = cell_sizes or (0.1, 0.5, 0.8, default_cell_size_arcmin())
-    dithers = ("random", "spiral") if dither == "both" else (dither,)
+    dithers: tuple[Literal["random", "spiral"], ...] = (
+        ("random", "spiral") if dither == "both" else (dither,)
+    )
     results = rejection_survey(
         sizes,
         dithers,
@@ -146,7 +154,7 @@ def snr_loss(
       cellcoadd analyze snr-loss --dsigma 0.3 --trials 2000 --resolution 0 --resolution 0.5
       cellcoadd analyze snr-loss --out docs/images/snr_loss.png
     """
-    kwargs = {"resolutions": resolutions} if resolutions else {}
+    kwargs: dict[str, Any] = {"resolutions": resolutions} if resolutions else {}
     table = monte_carlo_ratio(
         dsigma_over_sigma=dsigma, n_epochs=n_epochs, n_trials=trials, seed=seed, **kwargs
     )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 import numpy as np
@@ -64,7 +63,9 @@ def skymap(
         the_map = SkyMap.rings(config)
     click.echo(the_map.summary())
     if out:
-        Path(out).write_text(the_map.to_json())
+        from cellcoadd.io.atomic import atomic_write_text  # loads cellcoadd.io: only here
+
+        atomic_write_text(out, the_map.to_json(), overwrite=True)
         click.echo(f"wrote {out}")
     if layout:
         from cellcoadd.plots import plot_patch_layout
@@ -90,7 +91,7 @@ def locate(ra: float, dec: float, skymap_path: str | None, as_json: bool) -> Non
     if not (-90.0 <= dec <= 90.0 and np.isfinite(ra)):
         raise click.BadParameter(f"({ra}, {dec}) is not a sky position in deg")
     the_map = load_skymap(skymap_path)
-    where = the_map.locate([ra], [dec])[0]
+    where = the_map.locate(np.array([ra]), np.array([dec]))[0]
     result = {name: where[name].item() for name in where.dtype.names}
     if as_json:
         click.echo(json.dumps(result))

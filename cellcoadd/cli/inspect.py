@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -89,6 +90,7 @@ def trim(
 
     from cellcoadd.geometry import SkyMap, flag_unique
     from cellcoadd.io import api as coadd_io
+    from cellcoadd.io.atomic import atomic_write
 
     with coadd_io.open(coadd_path) as stored:
         meta = stored.metadata
@@ -118,7 +120,18 @@ def trim(
     if primary_only:
         table = table[table["is_primary"]]
     out = out or str(Path(catalog).with_name(Path(catalog).stem + "_trim.fits"))
-    table.write(out, overwrite=overwrite)
+
+    def write(temporary: Path) -> None:
+        # astropy picks the format (and compression, e.g. .fits.gz) from the end of the
+        # name: write under a name ending like the output's, then take its place
+        named = temporary.with_name(f"{temporary.name}-{Path(out).name}")
+        try:
+            table.write(named)
+            os.replace(named, temporary)
+        finally:
+            named.unlink(missing_ok=True)
+
+    atomic_write(out, write, overwrite=overwrite)
     click.echo(
         f"wrote {out}: {len(table)} rows, {int(np.sum(table['is_primary']))} primary "
         f"({int(np.sum(flags['is_patch_inner']))} in patch {meta.patch})"

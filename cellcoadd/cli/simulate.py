@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option
+from cellcoadd.io.atomic import atomic_write_text
 from cellcoadd.pipelines.simulation_files import write_field_simulation, write_stamps
 from cellcoadd.sim import (
     DEMO_PATCH,
@@ -142,5 +143,6 @@ def _write_stamps(
     paths = write_stamps(simulated, out, overwrite=overwrite)
     description = {"mode": "stamps", "seed": seed, "n_objects": n_objects}
     description["config"] = config.model_dump(mode="json")
-    (out / "simulation.json").write_text(json.dumps(description, indent=2) + "\n")
+    text = json.dumps(description, indent=2) + "\n"
+    atomic_write_text(out / "simulation.json", text, overwrite=True)  # refused up front
     return f"wrote {len(paths) - 2} exposures of {n_objects} objects to {out}"

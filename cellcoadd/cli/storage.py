@@ -34,7 +34,7 @@ def patch_summary(path: str) -> dict[str, Any]:
     statuses: dict[tuple[int, int], Counter[str]] = {index: Counter() for index in indices}
     for cx, cy, status in zip(table["cell_x"], table["cell_y"], table["status"], strict=True):
         statuses[(int(cx), int(cy))][str(status)] += 1
-    per_cell = []
+    per_cell: list[dict[str, Any]] = []
     for index in indices:
         counts = statuses[index]
         per_cell.append(
@@ -156,7 +156,7 @@ def info_command(path: str, as_json: bool, per_cell: bool) -> None:
 )
 @click.option("--overwrite", is_flag=True, help="Replace DESTINATION if it exists.")
 def convert_command(
-    source: str, destination: str, compression: str | None, overwrite: bool
+    source: str, destination: str, compression: api.Compression | None, overwrite: bool
 ) -> None:
     """Copy a patch coadd into another layout (chosen by the file name), bit for bit.
 

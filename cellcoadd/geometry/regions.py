@@ -27,7 +27,7 @@ class InnerRegion:
         raise NotImplementedError
 
 
-def ra_slice_index(ra: np.ndarray, n_ra: int) -> np.ndarray:
+def ra_slice_index(ra: np.ndarray, n_ra: int | np.ndarray) -> np.ndarray:
     """Index of the half-open RA range ``[j, j + 1) * 360 / n_ra`` holding ``ra`` (deg)."""
     ra = np.mod(np.asarray(ra, dtype=float), 360.0)
     return np.minimum(np.floor(ra * (n_ra / 360.0)).astype(np.int64), n_ra - 1)

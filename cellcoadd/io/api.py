@@ -49,7 +49,10 @@ SUPPORTED_EXTENSIONS: dict[str, FileFormat] = {
 }
 
 _WRITERS: dict[FileFormat, Callable[..., None]] = {"fits": write_fits, "hdf5": write_hdf5}
-_READERS: dict[FileFormat, type[CoaddFile]] = {"fits": FitsCoaddFile, "hdf5": Hdf5CoaddFile}
+_READERS: dict[FileFormat, type[FitsCoaddFile] | type[Hdf5CoaddFile]] = {
+    "fits": FitsCoaddFile,
+    "hdf5": Hdf5CoaddFile,
+}
 
 
 def file_format(path: str | os.PathLike[str]) -> FileFormat:

@@ -1,6 +1,7 @@
 """Atomic writes of files: a temporary file next to the target, published when complete.
 
-:func:`atomic_write` is the one way cellcoadd writes a file (patch coadds, exposures).
+:func:`atomic_write` is the one way cellcoadd writes a file (patch coadds, exposures,
+simulation descriptions and tables, command-line outputs).
 Readers see either the previous file or the complete new one, never a partial file. A
 process killed mid-write can leave a hidden temporary file (``.<name>.tmp-<random>``)
 behind; it is safe to delete.
@@ -90,6 +91,17 @@ def atomic_write(
         raise
     _fsync_directory(directory)
     return target
+
+
+def atomic_write_text(
+    target: str | os.PathLike[str], text: str, *, overwrite: bool = False
+) -> Path:
+    """:func:`atomic_write` of ``text`` into ``target``, encoded as by ``Path.write_text``."""
+
+    def write(temporary: Path) -> None:
+        temporary.write_text(text)
+
+    return atomic_write(target, write, overwrite=overwrite)
 
 
 def _publish(temporary: Path, target: Path, *, overwrite: bool) -> None:

@@ -7,8 +7,9 @@ import json
 from typing import Any
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.model.cell_coadd import CellCoadd, wcs_from_record, wcs_to_record
+from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchMetadata
+from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 
 #: Pixel planes of a cell (besides the inputs table).
 PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")

@@ -38,9 +38,10 @@ from cellcoadd.io.format_version import (
 )
 from cellcoadd.io.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.io.read_checks import check_path_readable, reading_errors
-from cellcoadd.model.cell_coadd import CellCoadd, wcs_to_record
+from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+from cellcoadd.model.wcs_codec import wcs_to_record
 
 _FLOAT_PLANES = ("image", "variance", "mfrac", "noise")
 _HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*PLANES, "inputs")}
@@ -139,13 +140,13 @@ def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
 
 
 def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
-    keys = [
+    keys: list[dict[str, Any]] = [
         {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
         {"name": "CELL_Y", "value": cell.index[1], "comment": "tract-global cell index y"},
     ]
     for plane in _cell_planes(cell.n_noise):
         name = extname(cell.index, plane)
-        plane_keys = [*keys, {"name": "PLANE", "value": plane}]
+        plane_keys: list[dict[str, Any]] = [*keys, {"name": "PLANE", "value": plane}]
         if plane == "inputs":
             fits.write(inputs_to_array(cell.inputs, ascii_only=True), extname=name)
             fits[-1].write_keys([*plane_keys, DATACRC_PLACEHOLDER])
@@ -334,7 +335,7 @@ class FitsCoaddFile(CoaddFile):
                 f"{identity['tract']}",
             )
         shapes = expected_shapes(self.metadata, identity["outer_bbox"])
-        planes = {}
+        planes: dict[str, Any] = {}  # arrays, by CellCoadd field name
         for plane in PLANES:
             number = int(row[_HDU_COLUMNS[plane]])
             if plane == "noise" and self.metadata.n_noise == 0 and number == -1:

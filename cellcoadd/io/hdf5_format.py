@@ -38,7 +38,7 @@ from cellcoadd.model.patch_coadd import PatchCoadd
 
 _LIBVER = ("v110", "v110")
 _GROUP_NAME = re.compile(r"^(-?\d+)_(-?\d+)$")
-_DTYPES = {
+_DTYPES: dict[str, np.dtype] = {
     "image": np.dtype("<f4"),
     "mask": np.dtype("<i4"),
     "variance": np.dtype("<f4"),

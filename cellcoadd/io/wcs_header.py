@@ -3,12 +3,12 @@
 cfitsio writes floating-point header values with 15 significant digits, which is not
 enough to round-trip float64 (nor a WCS to 1e-9 pixel). The writer therefore returns,
 next to the header cards, the exact float64 values of every floating-point WCS keyword
-(:func:`~cellcoadd.model.cell_coadd.wcs_exact_keywords`: CRPIXi, CRVALi, CDELTi, PCi_j,
+(:func:`~cellcoadd.model.wcs_codec.wcs_exact_keywords`: CRPIXi, CRVALi, CDELTi, PCi_j,
 LONPOLE, LATPOLE and the SIP coefficients ``A_p_q``, ``B_p_q``, ``AP_p_q``, ``BP_p_q``),
 stored by the caller elsewhere (JSON). The reader parses the header, checks each rounded
 value against its exact one (relative tolerance :data:`HEADER_RTOL`) and sets the exact
 values on the parsed WCS. The exact encoding itself is the model's WCS codec
-(:mod:`cellcoadd.model.cell_coadd`); this module only adds the FITS header around it.
+(:mod:`cellcoadd.model.wcs_codec`); this module only adds the FITS header around it.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from astropy.io import fits
 from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.model.cell_coadd import apply_wcs_exact_keywords, wcs_exact_keywords, wcs_header
+from cellcoadd.model.wcs_codec import apply_wcs_exact_keywords, wcs_exact_keywords, wcs_header
 
 #: Relative agreement required between a header float (15 digits) and its exact value.
 HEADER_RTOL = 1e-13

@@ -21,18 +21,17 @@ rejected inputs are still listed. :meth:`CellCoadd.empty` builds one.
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from astropy.io import fits
-from astropy.wcs import WCS, FITSFixedWarning, Sip
+from astropy.wcs import WCS
 
 from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.wcs_codec import wcs_to_record
 
 #: Tolerance on ``|sum(psf) - 1|`` for a non-empty cell.
 PSF_SUM_TOLERANCE = 1e-6
@@ -221,7 +220,7 @@ class CellCoadd:
 
         Arrays must have equal dtypes, shapes and bytes (so NaN payloads and -0.0 count),
         inputs must be :meth:`~cellcoadd.model.inputs.InputRecord.identical`, and identity,
-        boxes and WCS (:func:`wcs_to_record`) equal.
+        boxes and WCS (:func:`~cellcoadd.model.wcs_codec.wcs_to_record`) equal.
         """
         if not isinstance(other, CellCoadd):
             return False
@@ -263,160 +262,6 @@ def arrays_identical(first: np.ndarray, second: np.ndarray) -> bool:
         and first.shape == second.shape
         and first.tobytes() == second.tobytes()
     )
-
-
-def wcs_header(wcs: WCS) -> fits.Header:
-    """``wcs.to_header(relax=True)`` (SIP included) without astropy's fix-up warnings.
-
-    Floating-point values there are rounded when printed as FITS cards; the exact values
-    are :func:`wcs_exact_parameters`.
-    """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FITSFixedWarning)
-        return wcs.to_header(relax=True)
-
-
-def wcs_exact_parameters(wcs: WCS) -> dict[str, Any]:
-    """The numerical parameters of a celestial WCS at full double precision (JSON-able).
-
-    Keys: ``crpix``, ``crval``, ``cdelt`` (lists of 2 floats), ``pc`` (2 x 2), ``lonpole``,
-    ``latpole``, ``pv`` (``[i, m, value]`` triples) and ``sip`` (None, or the ``a``, ``b``,
-    ``ap``, ``bp`` coefficient matrices as nested lists, each possibly None).
-    :func:`apply_wcs_exact_parameters` sets them back.
-    """
-    params = wcs.wcs
-    exact: dict[str, Any] = {
-        "crpix": [float(v) for v in params.crpix],
-        "crval": [float(v) for v in params.crval],
-        "cdelt": [float(v) for v in params.get_cdelt()],
-        "pc": [[float(v) for v in row] for row in params.get_pc()],
-        "lonpole": float(params.lonpole),
-        "latpole": float(params.latpole),
-        "pv": [[int(i), int(m), float(v)] for i, m, v in params.get_pv()],
-        "sip": None,
-    }
-    if wcs.sip is not None:
-        exact["sip"] = {
-            name: None if coeffs is None else np.asarray(coeffs, dtype=float).tolist()
-            for name, coeffs in zip(
-                _SIP_NAMES, (wcs.sip.a, wcs.sip.b, wcs.sip.ap, wcs.sip.bp), strict=True
-            )
-        }
-    return exact
-
-
-def apply_wcs_exact_parameters(wcs: WCS, exact: dict[str, Any]) -> None:
-    """Set the parameters of :func:`wcs_exact_parameters` on ``wcs`` (in place), bit-exact.
-
-    An empty ``pv`` list leaves the PV values of ``wcs`` as they are.
-    """
-    params = wcs.wcs
-    params.crpix = exact["crpix"]
-    params.crval = exact["crval"]
-    params.cdelt = exact["cdelt"]
-    params.pc = exact["pc"]
-    params.lonpole = exact["lonpole"]
-    params.latpole = exact["latpole"]
-    if exact["pv"]:
-        params.set_pv([(int(i), int(m), float(v)) for i, m, v in exact["pv"]])
-    sip = exact.get("sip")
-    if sip is not None:
-        wcs.sip = Sip(
-            *(
-                None if sip[name] is None else np.asarray(sip[name], dtype=float)
-                for name in _SIP_NAMES
-            ),
-            np.asarray(exact["crpix"], dtype=float),
-        )
-    params.set()
-
-
-def wcs_exact_keywords(wcs: WCS) -> dict[str, float]:
-    """:func:`wcs_exact_parameters` keyed by the FITS keywords they are rounded in.
-
-    ``LONPOLE``, ``LATPOLE``, then ``CRPIXi``, ``CRVALi``, ``CDELTi``, ``PCi_j`` for each
-    axis ``i``, then the non-zero SIP coefficients ``A_p_q``, ``B_p_q``, ``AP_p_q``,
-    ``BP_p_q`` (PV values are not included). :func:`apply_wcs_exact_keywords` sets them back.
-    """
-    exact = wcs_exact_parameters(wcs)
-    values: dict[str, float] = {"LONPOLE": exact["lonpole"], "LATPOLE": exact["latpole"]}
-    for i in range(2):
-        values[f"CRPIX{i + 1}"] = exact["crpix"][i]
-        values[f"CRVAL{i + 1}"] = exact["crval"][i]
-        values[f"CDELT{i + 1}"] = exact["cdelt"][i]
-        for j in range(2):
-            values[f"PC{i + 1}_{j + 1}"] = exact["pc"][i][j]
-    for _, prefix, coeffs in _sip_items(exact):
-        for p, q in zip(*np.nonzero(coeffs), strict=True):
-            values[f"{prefix}_{p}_{q}"] = float(coeffs[p, q])
-    return values
-
-
-def apply_wcs_exact_keywords(wcs: WCS, values: dict[str, float]) -> None:
-    """Set the exact values of :func:`wcs_exact_keywords` on ``wcs`` parsed from the rounded
-    header (in place); parameters without a value in ``values`` are kept, and so are SIP
-    coefficients that are zero in ``wcs``.
-    """
-    exact = wcs_exact_parameters(wcs)
-    exact["lonpole"] = values.get("LONPOLE", exact["lonpole"])
-    exact["latpole"] = values.get("LATPOLE", exact["latpole"])
-    for i in range(2):
-        exact["crpix"][i] = values.get(f"CRPIX{i + 1}", exact["crpix"][i])
-        exact["crval"][i] = values.get(f"CRVAL{i + 1}", exact["crval"][i])
-        exact["cdelt"][i] = values.get(f"CDELT{i + 1}", exact["cdelt"][i])
-        for j in range(2):
-            exact["pc"][i][j] = values.get(f"PC{i + 1}_{j + 1}", exact["pc"][i][j])
-    exact["pv"] = []  # PV values are not in the keyword form: keep the parsed ones
-    for name, prefix, coeffs in _sip_items(exact):
-        for p, q in zip(*np.nonzero(coeffs), strict=True):
-            coeffs[p, q] = values.get(f"{prefix}_{p}_{q}", coeffs[p, q])
-        exact["sip"][name] = coeffs
-    apply_wcs_exact_parameters(wcs, exact)
-
-
-def wcs_to_record(wcs: WCS) -> dict[str, Any]:
-    """A JSON-able description of a celestial WCS from which :func:`wcs_from_record` rebuilds
-    it exactly.
-
-    ``header`` holds the ``(keyword, value)`` cards of :func:`wcs_header`; because FITS
-    cards print only ~14 significant digits, ``exact`` repeats the numerical parameters
-    (:func:`wcs_exact_parameters`) at full double precision. Lookup-table distortions are
-    not representable and are refused.
-    """
-    if (
-        wcs.cpdis1 is not None
-        or wcs.cpdis2 is not None
-        or wcs.det2im1 is not None
-        or (wcs.det2im2 is not None)
-    ):
-        raise ValueError("WCS lookup-table distortions (CPDIS/DET2IM) cannot be stored")
-    header = wcs_header(wcs)
-    exact = wcs_exact_parameters(wcs)
-    return {"header": [[card.keyword, card.value] for card in header.cards], "exact": exact}
-
-
-def wcs_from_record(record: dict[str, Any]) -> WCS:
-    """Rebuild the WCS described by :func:`wcs_to_record` (bit-exact parameters)."""
-    header = fits.Header([(str(key), value) for key, value in record["header"]])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FITSFixedWarning)
-        wcs = WCS(header, relax=True)
-    apply_wcs_exact_parameters(wcs, record["exact"])
-    return wcs
-
-
-#: Names of the SIP coefficient matrices in :func:`wcs_exact_parameters`.
-_SIP_NAMES = ("a", "b", "ap", "bp")
-
-
-def _sip_items(exact: dict[str, Any]) -> Iterator[tuple[str, str, np.ndarray]]:
-    """``(name, keyword prefix, float64 copy)`` of each SIP matrix present in ``exact``."""
-    sip = exact["sip"]
-    if sip is None:
-        return
-    for name in _SIP_NAMES:
-        if sip[name] is not None:
-            yield name, name.upper(), np.array(sip[name], dtype=float)
 
 
 def _as_int(field: str, value: Any) -> int:

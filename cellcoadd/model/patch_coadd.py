@@ -147,7 +147,8 @@ class PatchMetadata(BaseModel):
     @cached_property
     def geometry(self) -> Patch:
         """The patch as a :class:`~cellcoadd.geometry.Patch` (its tract, cells and boxes)."""
-        center = tuple(self.tract_center)
+        ra, dec = self.tract_center
+        center = (ra, dec)
         tract = Tract(
             id=self.tract,
             center=center,

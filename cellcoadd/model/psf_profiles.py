@@ -183,7 +183,7 @@ def grid_nodes(n_pixels: int, n_nodes: int) -> np.ndarray:
     return np.linspace(0.0, n_pixels - 1.0, n_nodes)
 
 
-def _bracket(nodes: Sequence[float], value: float) -> tuple[int, int, float]:
+def _bracket(nodes: Sequence[float] | np.ndarray, value: float) -> tuple[int, int, float]:
     """Indices of the nodes around ``value`` and the weight of the upper one (clamped)."""
     n = len(nodes)
     if n == 1 or value <= nodes[0]:

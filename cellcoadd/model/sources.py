@@ -6,7 +6,8 @@ is from its headers alone (:class:`ExposureHeader`: identity, band, WCS, shape, 
 region) and loads its pixels, cut to a box of detector pixels, when a cell needs them.
 Sources are small picklable objects (paths and options), so each worker process loads
 its own inputs. :class:`cellcoadd.io.ExposureFile` (cellcoadd's own files) and
-:class:`cellcoadd.io.MefExposureFile` (LSST, DES and other layouts) implement them; any object with the same two methods works too.
+:class:`cellcoadd.io.MefExposureFile` (LSST, DES and other layouts) implement them;
+any object with the same two methods works too.
 """
 
 from __future__ import annotations

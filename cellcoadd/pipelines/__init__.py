@@ -5,24 +5,32 @@
   into cells and measured;
 * :mod:`cellcoadd.pipelines.shear_validation`: the shear-bias validation over many pairs
   (``cellcoadd validate-shear``).
+
+The names below are imported from their modules on first use, so that importing one
+pipeline module (say :mod:`cellcoadd.pipelines.simulation_files` for ``cellcoadd
+simulate``) does not load the others and what they need (numba, the builder).
 """
 
-from cellcoadd.pipelines.shear_validation import (
-    M_REQUIREMENT,
-    PAPER_TABLE1,
-    PairCatalogue,
-    format_bias_table,
-    measure_pairs,
-    run_pairs,
-    summarize,
-    validate_shear,
-)
-from cellcoadd.pipelines.stamp_pairs import (
-    PairMeasurement,
-    ValidationSettings,
-    largest_cell_inner,
-    measure_pair,
-)
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
+
+#: public name -> module that defines it
+_EXPORTS: dict[str, str] = {
+    "M_REQUIREMENT": "cellcoadd.pipelines.shear_validation",
+    "PAPER_TABLE1": "cellcoadd.pipelines.shear_validation",
+    "PairCatalogue": "cellcoadd.pipelines.shear_validation",
+    "format_bias_table": "cellcoadd.pipelines.shear_validation",
+    "measure_pairs": "cellcoadd.pipelines.shear_validation",
+    "run_pairs": "cellcoadd.pipelines.shear_validation",
+    "summarize": "cellcoadd.pipelines.shear_validation",
+    "validate_shear": "cellcoadd.pipelines.shear_validation",
+    "PairMeasurement": "cellcoadd.pipelines.stamp_pairs",
+    "ValidationSettings": "cellcoadd.pipelines.stamp_pairs",
+    "largest_cell_inner": "cellcoadd.pipelines.stamp_pairs",
+    "measure_pair": "cellcoadd.pipelines.stamp_pairs",
+}
 
 __all__ = [
     "M_REQUIREMENT",
@@ -38,3 +46,35 @@ __all__ = [
     "summarize",
     "validate_shear",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cellcoadd.pipelines' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
+
+
+if TYPE_CHECKING:  # the same names, for type checkers and IDEs
+    from cellcoadd.pipelines.shear_validation import (
+        M_REQUIREMENT,
+        PAPER_TABLE1,
+        PairCatalogue,
+        format_bias_table,
+        measure_pairs,
+        run_pairs,
+        summarize,
+        validate_shear,
+    )
+    from cellcoadd.pipelines.stamp_pairs import (
+        PairMeasurement,
+        ValidationSettings,
+        largest_cell_inner,
+        measure_pair,
+    )

@@ -12,6 +12,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import galsim
 import numpy as np
@@ -20,6 +21,7 @@ from astropy.table import Table
 from cellcoadd.builder import build_patch
 from cellcoadd.geometry import flag_unique
 from cellcoadd.io import api as coadd_io
+from cellcoadd.io.atomic import atomic_write, atomic_write_text
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.pipelines.simulation_files import write_field_simulation
@@ -42,7 +44,7 @@ class DemoResult:
     out_dir: Path
     files: dict[str, Path] = field(default_factory=dict)
     report: str = ""
-    numbers: dict[str, float] = field(default_factory=dict)
+    numbers: dict[str, Any] = field(default_factory=dict)  # counts, floats, the cell index
 
 
 class _Clock:
@@ -234,7 +236,11 @@ def run_demo(
     clock.lap("read back")
     truth, n_in_patch = _trim_truth(sim.truth, skymap, coadd)
     result.files["truth_trimmed"] = out / "truth_trimmed.fits"
-    truth.write(result.files["truth_trimmed"], overwrite=True)
+
+    def write_truth(temporary: Path) -> None:
+        truth.write(temporary, format="fits")
+
+    atomic_write(result.files["truth_trimmed"], write_truth, overwrite=True)
     clock.lap("trim")
     shear = _measure_shear(coadd, truth, skymap)
     clock.lap("shear")
@@ -249,7 +255,7 @@ def run_demo(
     result.files["inputs"] = Path(plot_inputs_map(coadd, out / "inputs.png"))
     clock.lap("plots")
     inner = coadd.cells[check].inner
-    numbers = {
+    numbers: dict[str, Any] = {
         "cells": len(coadd.cells),
         "inner_cells": len(coadd.inner_cell_indices),
         "empty_cells": len(coadd.empty_cell_indices),
@@ -264,6 +270,7 @@ def run_demo(
     numbers.update({f"pairs_{k}": v for k, v in statuses.items()})
     result.report = _report(numbers, statuses, _coadd_psf_fwhm(coadd), clock, result.files)
     result.numbers = numbers
-    (out / "report.txt").write_text(result.report + "\n")
-    result.files["report"] = out / "report.txt"
+    result.files["report"] = atomic_write_text(
+        out / "report.txt", result.report + "\n", overwrite=True
+    )
     return result

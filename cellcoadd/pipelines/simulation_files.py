@@ -2,7 +2,8 @@
 
 The simulations (:mod:`cellcoadd.sim`) return in-memory results; these functions write
 them, for ``cellcoadd simulate`` and ``cellcoadd demo``. Each refuses to replace an
-existing file unless ``overwrite`` is set (raising :class:`FileExistsError`).
+existing file unless ``overwrite`` is set (raising :class:`FileExistsError`). Every file
+is written atomically (:func:`cellcoadd.io.atomic.atomic_write`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 
 from astropy.table import Table
 
+from cellcoadd.io.atomic import atomic_write, atomic_write_text
 from cellcoadd.io.exposure_io import write_exposure
 from cellcoadd.sim.field import FieldSimulation
 from cellcoadd.sim.stamps import StampObject, stamps_truth_tables
@@ -51,10 +53,7 @@ def write_field_simulation(
         ("skymap.json", simulation.skymap.to_json()),
         ("simulation.json", json.dumps(simulation.description(), indent=2) + "\n"),
     ):
-        path = out / name
-        _refuse_existing(path, overwrite)
-        path.write_text(text)
-        paths.append(path)
+        paths.append(atomic_write_text(out / name, text, overwrite=overwrite))
     for name, table in (("truth.fits", simulation.truth), ("visits.fits", simulation.visits)):
         paths.append(_write_table(table, out / name, overwrite))
     return paths
@@ -97,12 +96,8 @@ def write_stamps(
     return paths
 
 
-def _refuse_existing(path: Path, overwrite: bool) -> None:
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-
-
 def _write_table(table: Table, path: Path, overwrite: bool) -> Path:
-    _refuse_existing(path, overwrite)
-    table.write(path, format="fits", overwrite=True)
-    return path
+    def write(temporary: Path) -> None:
+        table.write(temporary, format="fits")
+
+    return atomic_write(path, write, overwrite=overwrite)

@@ -260,6 +260,7 @@ def _with_noise(obj: StampObject, noise: np.ndarray, sigma: float) -> list[Expos
 
 def _failed(flags: int) -> dict[str, np.ndarray]:
     record = np.zeros(1, dtype=SHAPE_DTYPE)
+    assert SHAPE_DTYPE.names is not None  # a structured dtype
     for name in SHAPE_DTYPE.names:
         if name != "flags":
             record[name] = np.nan
@@ -342,6 +343,7 @@ def measure_pair(
     for obj in (plus, minus):
         exposures = _with_noise(obj, noise, sigma)
         if settings.mode == "coadd":
+            assert cell is not None  # made above
             measured, n_inputs = _measure_coadd(settings, cell, exposures)
         else:
             measured = _measure_single(settings, obj, exposures[0], sigma)

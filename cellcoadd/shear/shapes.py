@@ -34,6 +34,7 @@ class MetacalFlags(enum.IntFlag):
 def empty_record(flags: int) -> np.ndarray:
     """A length-1 :data:`SHAPE_DTYPE` array flagged ``flags``, every other field NaN."""
     record = np.zeros(1, dtype=SHAPE_DTYPE)
+    assert SHAPE_DTYPE.names is not None  # a structured dtype
     for name in SHAPE_DTYPE.names:
         if name != "flags":
             record[name] = np.nan

@@ -15,6 +15,7 @@ All distributions are in :class:`SimConfig` (paper defaults); every random numbe
 from an explicitly seeded generator.
 """
 
+from cellcoadd.geometry.wcs_utils import tan_wcs  # its home; re-exported for convenience
 from cellcoadd.sim.config import (
     FieldConfig,
     GalaxyConfig,
@@ -47,7 +48,6 @@ from cellcoadd.sim.stamps import (
     simulate_stamp_pair,
     simulate_stamps,
     stamps_truth_tables,
-    tan_wcs,
 )
 
 __all__ = [

@@ -74,6 +74,8 @@ def disk_offsets(
     not depend on how many follow); ``"spiral"``: a Vogel (sunflower) spiral that fills the
     disk evenly, starting at a random angle.
     """
+    r: np.ndarray
+    phi: np.ndarray
     if pattern == "random":
         uniform = rng.uniform(size=(n_visits, 2))
         r = radius * np.sqrt(uniform[:, 0])

@@ -111,7 +111,7 @@ class FocalPlane:
         width = config.n_ccd_x * config.ccd_nx + (config.n_ccd_x - 1) * config.ccd_gap
         height = config.n_ccd_y * config.ccd_ny + (config.n_ccd_y - 1) * config.ccd_gap
         pixel_mm = SIM_PIXEL_SIZE_UM / 1000.0
-        detectors = []
+        detectors: list[Detector] = []
         for j in range(config.n_ccd_y):
             for i in range(config.n_ccd_x):
                 # focal-plane position of the CCD's pixel (0, 0), pixels from the boresight
@@ -350,7 +350,7 @@ def lsst_focal_plane(
     ccd_mm = ccd_pixels * pixel_size_um * 1e-3
     if ccd_pitch_mm < ccd_mm or raft_pitch_mm < 2 * ccd_pitch_mm + ccd_mm:
         raise ValueError("CCD or raft pitch too small: detectors would overlap")
-    detectors = []
+    detectors: list[Detector] = []
     for raft_y in range(5):
         for raft_x in range(5):
             if raft_x in (0, 4) and raft_y in (0, 4):
@@ -397,7 +397,7 @@ def decam_like_focal_plane(
     pixel_mm = 15e-3
     width, height = 4096 * pixel_mm, 2048 * pixel_mm
     row_counts = (3, 4, 5, 6, 6, 7, 7, 6, 6, 5, 4, 3)
-    detectors = []
+    detectors: list[Detector] = []
     for row, count in enumerate(row_counts):
         y_mm = (row - (len(row_counts) - 1) / 2) * (height + gap_y_mm)
         for column in range(count):

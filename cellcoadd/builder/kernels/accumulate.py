@@ -17,6 +17,7 @@ import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
+from numpy.typing import ArrayLike
 
 from cellcoadd.builder.kernels.lanczos import (
     N_TAPS,
@@ -135,9 +136,10 @@ def _prefetch_footprint(
     start = footprint_corner(table, col, row_stride, tap_stride)
     last = np.uint64(span - 1)
     for _ in range(N_TAPS):
+        # numba intrinsic: mypy sees the typer's signature, with typingctx first
         for offset in range(0, span, _LINE_ELEMENTS):
-            _prefetch(flat, start + np.uint64(offset))
-        _prefetch(flat, start + last)
+            _prefetch(flat, start + np.uint64(offset))  # type: ignore[call-arg]
+        _prefetch(flat, start + last)  # type: ignore[call-arg]
         start += row_stride
 
 
@@ -216,7 +218,8 @@ def _accumulate_interleaved(
             args = (flat_pixels, corner, row_stride, tap_stride, table, col)
             if n_planes == 1:
                 # A lone plane: its six taps along x are adjacent.
-                total = block_sum_adjacent(flat_pixels, corner, row_stride, table, col)
+                # numba intrinsic: mypy sees the typer's signature, with typingctx first
+                total = block_sum_adjacent(flat_pixels, corner, row_stride, table, col)  # type: ignore[call-arg, var-annotated]
                 out[0, row, col] += factors[0, col] * total
             elif n_planes == 2:
                 _add_sums(out, row, col, factors, 0, _block_sums2(*args), 0)
@@ -246,9 +249,9 @@ def accumulate_warped(
     x_src: np.ndarray,
     y_src: np.ndarray,
     out: np.ndarray,
-    plane_weights: np.ndarray,
+    plane_weights: ArrayLike,
     scales: np.ndarray | None = None,
-    plane_scales: np.ndarray | None = None,
+    plane_scales: ArrayLike | None = None,
 ) -> np.ndarray:
     """Warp planes stored pixel by pixel and add each with its own weight and scale.
 

@@ -117,7 +117,9 @@ def column_sums(
         pointer = builder.bitcast(
             builder.gep(data, [index], inbounds=True), loaded_type.as_pointer()
         )
-        values = builder.load(pointer, align=flat_type.dtype.bitwidth // 8, typ=loaded_type)
+        # numba types Array.dtype as a plain Type; here it is always a Float with a bitwidth
+        align = flat_type.dtype.bitwidth // 8  # type: ignore[attr-defined]
+        values = builder.load(pointer, align=align, typ=loaded_type)
         if element != _F64:
             values = builder.fpext(values, ir.VectorType(_F64, width))
         terms.append(builder.fmul(weights_y[a], values))
@@ -213,7 +215,8 @@ def _warp_row(
         corner = footprint_corner(table, col, row_stride, one)
         for p in range(n_planes):
             start = np.uint64(p) * plane_stride + corner
-            total = block_sum_adjacent(flat_planes, start, row_stride, table, col)
+            # numba intrinsic: mypy sees the typer's signature, with typingctx first
+            total = block_sum_adjacent(flat_planes, start, row_stride, table, col)  # type: ignore[call-arg, var-annotated]
             out[p, row, col] += factor * total
 
 
