@@ -160,11 +160,7 @@ def _psfex_star(path: Path):
 
 @pytest.mark.parametrize("layout", ["tpv", "sip"])
 def test_psfex_star_equals_coadd_psf(psfex_file, layout):
-    _need_des_files()
-    if layout == "tpv":
-        wcs_list = [des_tpv_wcs(shift) for shift in DITHERS]
-    else:
-        wcs_list = [rotated_sip_wcs(shift, (104.0, -55.0)) for shift in DITHERS]
+    wcs_list = _layout_wcs_list(layout)
     center = wcs_list[0].all_pix2world([NX / 2], [NY / 2], 0)
     cells = _cells((float(center[0][0]), float(center[1][0])))
     exposures = _exposures(wcs_list, PsfexPsf(psfex_file), _psfex_star(psfex_file), cells)
@@ -212,20 +208,23 @@ def test_real_des_psfex_model_draws_where_galsim_does():
     assert max(sizes) / min(sizes) > 1.01
 
 
-@pytest.fixture(scope="module")
-def piff_file(tmp_path_factory):
-    pytest.importorskip("piff", reason="Piff is the optional extra cellcoadd[piff]")
-    wcs = galsim.FitsWCS(
-        header=galsim.FitsHeader(rotated_sip_wcs((0, 0), (104.0, -55.0)).to_header(relax=True))
-    )
-    return build_piff_model(tmp_path_factory.mktemp("piff") / "ccd.piff", wcs=wcs).path
+def _layout_wcs_list(layout: str) -> list[WCS]:
+    if layout == "tpv":
+        _need_des_files()
+        return [des_tpv_wcs(shift) for shift in DITHERS]
+    return [rotated_sip_wcs(shift, (104.0, -55.0)) for shift in DITHERS]
 
 
-def test_piff_star_equals_coadd_psf(piff_file):
-    import piff
-
-    psf = piff.read(str(piff_file))
-    wcs_list = [rotated_sip_wcs(shift, (104.0, -55.0)) for shift in DITHERS]
+@pytest.mark.parametrize("layout", ["tpv", "sip"])
+def test_piff_star_equals_coadd_psf(tmp_path, layout):
+    piff = pytest.importorskip("piff", reason="Piff is the optional extra cellcoadd[piff]")
+    wcs_list = _layout_wcs_list(layout)
+    # Piff is fitted with the first dither's WCS, as it would be on that exposure
+    header = galsim.FitsHeader(wcs_list[0].to_header(relax=True))
+    if layout == "tpv":
+        header = galsim.FitsHeader(str(DES_HEADER))
+    path = build_piff_model(tmp_path / "ccd.piff", wcs=galsim.FitsWCS(header=header)).path
+    psf = piff.read(str(path))
 
     def draw_star(image: np.ndarray, x: float, y: float) -> None:
         box = _stamp_box(x, y)
@@ -237,7 +236,7 @@ def test_piff_star_equals_coadd_psf(piff_file):
 
     center = wcs_list[0].all_pix2world([NX / 2], [NY / 2], 0)
     cells = _cells((float(center[0][0]), float(center[1][0])))
-    exposures = _exposures(wcs_list, PiffPsf(piff_file), draw_star, cells)
+    exposures = _exposures(wcs_list, PiffPsf(path), draw_star, cells)
     for t_error, residual in _check_star_is_psf(exposures, cells):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)
 
