@@ -8,6 +8,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "cellcoadd"
 LEVEL = {
     "_version": 0,
+    "_lazy": 0,
     "errors": 0,
     "geometry": 0,
     "model": 1,

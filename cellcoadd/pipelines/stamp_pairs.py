@@ -45,7 +45,7 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
-from cellcoadd.shear.shapes import SHAPE_DTYPE
+from cellcoadd.shear.shapes import empty_record
 from cellcoadd.sim.config import SimConfig
 from cellcoadd.sim.stamps import StampObject, simulate_object
 
@@ -259,13 +259,7 @@ def _with_noise(obj: StampObject, noise: np.ndarray, sigma: float) -> list[Expos
 
 
 def _failed(flags: int) -> dict[str, np.ndarray]:
-    record = np.zeros(1, dtype=SHAPE_DTYPE)
-    assert SHAPE_DTYPE.names is not None  # a structured dtype
-    for name in SHAPE_DTYPE.names:
-        if name != "flags":
-            record[name] = np.nan
-    record["flags"] = flags
-    return {name: record.copy() for name in METACAL_TYPES}
+    return {name: empty_record(flags) for name in METACAL_TYPES}
 
 
 def _measure_coadd(
