@@ -93,7 +93,8 @@ def synthetic_patch(seed: int, n_noise: int = 3, psf_size: int = 35) -> PatchCoa
         tract_center=tract.center,
         patch=PATCH_INDEX,
         band="i",
-        units="counts at zero point 30 per coadd pixel",
+        units=config.units,
+        zero_point=config.zero_point,
         build_config=config,
     )
     return PatchCoadd(metadata, cells)

@@ -14,7 +14,8 @@ from exposure_factory import make_exposure
 from cellcoadd import Box, BuildConfig, SkyMap, SkyMapConfig, build_cell, build_patch
 
 CONFIG = SkyMapConfig(cell_inner=40, cell_border=15, cells_per_patch=2, patches_per_tract=1)
-BUILD = BuildConfig(n_noise=2, psf_size=25)
+# counts at the inputs' zero point 30, so pixel values compare with the inputs' as is
+BUILD = BuildConfig(n_noise=2, psf_size=25, units="count", zero_point=30.0)
 # varied inputs: pixel scales, rotations, sub-pixel offsets, shears, SIP, PSF sizes/shapes
 VARIANTS = [
     dict(pixel_scale=0.26, rotation_deg=0.0, offset=(0.3, -0.2), psf=(0.85, 0.0, 0.02)),

@@ -16,7 +16,8 @@ from cellcoadd.errors import InputError
 SKY = SkyMapConfig(
     pixel_scale=0.2, cell_inner=40, cell_border=10, cells_per_patch=2, patches_per_tract=2
 )
-BUILD = BuildConfig(n_noise=2, psf_size=21)
+# counts at the inputs' zero point 30, so pixel values compare with the inputs' as is
+BUILD = BuildConfig(n_noise=2, psf_size=21, units="count", zero_point=30.0)
 # DES single-epoch bad-pixel bit names (DESDM's BADPIX_* values as bit indices)
 DES_BITS = MaskBits(
     bits={

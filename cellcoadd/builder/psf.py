@@ -32,19 +32,59 @@ def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.nd
 
 
 def psf_moments(stamp: np.ndarray, jacobian: np.ndarray) -> dict[str, float]:
-    """Adaptive moments of a PSF stamp: FWHM (arcsec, Gaussian equivalent), e1, e2, T.
+    """Adaptive second moments of a PSF stamp on the coadd's pixel grid, in arcsec.
 
-    ``T = 2 sigma^2`` in arcsec^2; ``e1, e2`` are distortions. NaN when moments fail.
+    Parameters
+    ----------
+    stamp : ndarray
+        The PSF as sampled on the coadd grid: for an input record, the exposure's PSF
+        warped into the cell's PSF stamp (the contribution the coadd PSF averages), so
+        the moments are those of the coadd's pixels, not of the exposure's axes.
+    jacobian : ndarray, shape (2, 2)
+        ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (arcsec/pixel) of the coadd grid at the
+        stamp (``u`` West, ``v`` North: the tract's pixel axes ``x``, ``y``).
+
+    Returns
+    -------
+    dict
+        ``psf_T``, ``psf_e1``, ``psf_e2``, ``psf_fwhm``; all NaN when the moments fail.
+
+    Notes
+    -----
+    GalSim HSM adaptive (elliptical-Gaussian-weighted) moments ``M`` (pixel^2), which are
+    the unweighted second moments for a Gaussian, taken to the sky by the Jacobian,
+    ``Ms = J M J^T`` (arcsec^2), then
+
+    * ``psf_T = Ms_uu + Ms_vv`` (arcsec^2): ``T = Ixx + Iyy``, ``2 sigma^2`` for a round
+      Gaussian of standard deviation ``sigma``;
+    * ``psf_e1 = (Ms_uu - Ms_vv) / T``, ``psf_e2 = 2 Ms_uv / T``: *distortions*
+      (``|e| = (a^2 - b^2) / (a^2 + b^2)`` for axes ``a >= b``), not reduced shears
+      (``|g| = (a - b) / (a + b)``), in the frame ``u`` West, ``v`` North (which is the
+      coadd's ``x``, ``y`` pixel frame; ``e2`` changes sign in an East-North frame);
+    * ``psf_fwhm = 2 sqrt(2 ln 2) det(Ms)^(1/4)`` (arcsec): the FWHM of the round Gaussian
+      of the same determinant.
     """
-    pixel = float(np.sqrt(abs(np.linalg.det(jacobian))))
+    nan = {"psf_fwhm": np.nan, "psf_e1": np.nan, "psf_e2": np.nan, "psf_T": np.nan}
     try:
         shape = galsim.hsm.FindAdaptiveMom(galsim.ImageD(stamp), strict=True)
     except galsim.GalSimError:
-        return {"psf_fwhm": np.nan, "psf_e1": np.nan, "psf_e2": np.nan, "psf_T": np.nan}
-    sigma = shape.moments_sigma * pixel
+        return nan
+    e1, e2 = shape.observed_shape.e1, shape.observed_shape.e2
+    norm = 1.0 - e1 * e1 - e2 * e2
+    if not norm > 0.0:
+        return nan
+    # unit-determinant shape matrix of the distortion (e1, e2), times sigma^2 = det(M)^(1/2)
+    pixel_moments = (
+        shape.moments_sigma**2 * np.array([[1.0 + e1, e2], [e2, 1.0 - e1]]) / np.sqrt(norm)
+    )
+    sky = jacobian @ pixel_moments @ jacobian.T
+    size = float(sky[0, 0] + sky[1, 1])
+    det = float(np.linalg.det(sky))
+    if not (size > 0.0 and det > 0.0):
+        return nan
     return {
-        "psf_fwhm": float(2.0 * np.sqrt(2.0 * np.log(2.0)) * sigma),
-        "psf_e1": float(shape.observed_shape.e1),
-        "psf_e2": float(shape.observed_shape.e2),
-        "psf_T": float(2.0 * sigma**2),
+        "psf_fwhm": float(2.0 * np.sqrt(2.0 * np.log(2.0)) * det**0.25),
+        "psf_e1": float((sky[0, 0] - sky[1, 1]) / size),
+        "psf_e2": float(2.0 * sky[0, 1] / size),
+        "psf_T": size,
     }

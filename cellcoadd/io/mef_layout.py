@@ -32,13 +32,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
+from cellcoadd.model.units import NJY_ZERO_POINT  # AB magnitude of 1 nJy (31.4)
+
 #: HDU given by EXTNAME (or EXTTYPE; case-insensitive) or by number (0 = primary).
 HduRef = str | int
 
 ZeroPointKind = Literal["mag", "fluxmag0", "bunit"]
-
-#: AB magnitude of 1 nJy: ``-2.5 log10(1e-9 / 3631)``.
-NJY_ZERO_POINT = 2.5 * math.log10(3631.0e9)
 
 
 class ZeroPointKey(BaseModel):

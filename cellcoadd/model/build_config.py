@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from cellcoadd.model.units import (
+    NJY_ZERO_POINT,
+    PixelUnit,
+    is_njy_zero_point,
+    normalise_unit,
+)
 
 
 class BuildConfig(BaseModel):
@@ -29,8 +36,18 @@ class BuildConfig(BaseModel):
     optional_mask_bits : list of str
         Names in ``bad_mask_bits`` that an exposure may leave undefined (then none of its
         pixels has that bit).
+    units : "nJy" or "count"
+        Unit of the output pixels. ``"nJy"`` (the default): nanojansky per coadd pixel,
+        i.e. counts at the AB zero point ``2.5 log10(3631e9) = 31.4``
+        (:data:`~cellcoadd.model.units.NJY_ZERO_POINT`). ``"count"``: counts at
+        ``zero_point``. Left out, it is ``"count"`` when a ``zero_point`` is given (so
+        configurations and files written before this field existed, which state
+        ``zero_point = 30``, keep their meaning), else ``"nJy"``. ``"counts"`` is
+        accepted for ``"count"``.
     zero_point : float
-        Common photometric zero point, mag, to which every input is scaled.
+        Common AB zero point, mag, to which every input is scaled: the zero point of the
+        output pixels. Fixed at 31.4 (:data:`~cellcoadd.model.units.NJY_ZERO_POINT`) for
+        nJy; required for counts.
     mapping_tolerance : float
         Maximum error, pixels, allowed of the approximated cell -> exposure pixel mapping.
     noise_variance : "background" or "pixel"
@@ -48,9 +65,50 @@ class BuildConfig(BaseModel):
     max_mask_fraction: float = Field(0.1, ge=0.0, le=1.0)
     bad_mask_bits: tuple[str, ...] = ("BAD", "SAT", "CR", "NO_DATA", "EDGE")
     optional_mask_bits: tuple[str, ...] = ()
-    zero_point: float = Field(30.0, gt=-50.0, lt=100.0, description="mag")
+    units: PixelUnit = Field(
+        "nJy", description="output pixel unit: nJy, or count (counts at zero_point)"
+    )
+    zero_point: float = Field(
+        NJY_ZERO_POINT,
+        gt=-50.0,
+        lt=100.0,
+        description="mag, AB zero point of the output pixels (31.4 = 2.5 log10(3631e9) for nJy)",
+    )
     mapping_tolerance: float = Field(1e-3, gt=0.0, le=0.1, description="pixels")
     noise_variance: Literal["background", "pixel"] = "background"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _units_and_zero_point(cls, data: Any) -> Any:
+        # units left out: counts when a zero point is stated (configurations and files
+        # from before the units field), else nJy
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        if "units" in data:
+            data["units"] = normalise_unit(data["units"]) or data["units"]
+        else:
+            data["units"] = "count" if data.get("zero_point") is not None else "nJy"
+        zero_point = data.get("zero_point")
+        if (
+            data["units"] == "nJy"
+            and isinstance(zero_point, (int, float))
+            and not isinstance(zero_point, bool)
+            and is_njy_zero_point(float(zero_point))
+        ):
+            data["zero_point"] = NJY_ZERO_POINT  # the exact value, whatever its rounding
+        return data
+
+    @model_validator(mode="after")
+    def _check_units(self) -> BuildConfig:
+        if self.units == "nJy" and self.zero_point != NJY_ZERO_POINT:
+            raise ValueError(
+                f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
+                f"{self.zero_point}; use units 'count' for counts at another zero point"
+            )
+        if self.units == "count" and "zero_point" not in self.model_fields_set:
+            raise ValueError("units 'count' need a zero_point (mag)")
+        return self
 
     def required_mask_bits(self) -> tuple[str, ...]:
         """The names of ``bad_mask_bits`` every exposure must define."""

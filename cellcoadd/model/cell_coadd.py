@@ -6,9 +6,10 @@ Every plane covers the cell's *outer* box: ``plane[j, i]`` is tract pixel
 ``(outer_bbox.x_start + i, outer_bbox.y_start + j)``, and ``wcs`` maps array pixel
 ``(0, 0)`` (0-based, pixel centres at integers) to that tract pixel's sky position.
 
-* ``image``: surface brightness in the patch's units, float32.
+* ``image``: surface brightness in the patch's unit (``PatchMetadata.units``: nJy, or
+  counts at ``PatchMetadata.zero_point``) per coadd pixel, float32.
 * ``mask``: int32 bit mask, bits named by the patch's :class:`~cellcoadd.model.maskbits.MaskBits`.
-* ``variance``: per-pixel variance of ``image``, float32.
+* ``variance``: per-pixel variance of ``image`` (the unit squared), float32.
 * ``noise``: ``K`` noise realizations coadded exactly like the image, float32, ``(K, ny, nx)``.
 * ``mfrac``: fraction of the coadd weight that came from masked input pixels, float32.
 * ``psf``: odd square float64 stamp of the coadd PSF at the cell centre (pixel response
@@ -17,6 +18,9 @@ Every plane covers the cell's *outer* box: ``plane[j, i]`` is tract pixel
 A cell with no used input is *empty*: every float plane is NaN, the mask has ``NO_DATA``
 set everywhere (checked by :class:`~cellcoadd.model.patch_coadd.PatchCoadd`) and its
 rejected inputs are still listed. :meth:`CellCoadd.empty` builds one.
+
+:meth:`CellCoadd.to_nddata` gives an ``astropy.nddata.CCDData`` (unit, WCS, boolean mask,
+``VarianceUncertainty``).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.units import mask_plane_cards
 from cellcoadd.model.wcs_codec import wcs_to_record
 
 #: Tolerance on ``|sum(psf) - 1|`` for a non-empty cell.
@@ -213,6 +218,83 @@ class CellCoadd:
             variance=self.variance[rows, cols],
             noise=self.noise[:, rows, cols],
             mfrac=self.mfrac[rows, cols],
+        )
+
+    def to_nddata(
+        self,
+        unit: Any,
+        *,
+        mask_bits: MaskBits | None = None,
+        bad_bits: Iterable[str] | None = None,
+        inner: bool = False,
+        zero_point: float | None = None,
+    ) -> Any:
+        """The cell as an ``astropy.nddata.CCDData`` (an ``NDData``) for astropy tools.
+
+        Parameters
+        ----------
+        unit : str or astropy.units.Unit
+            Unit of the image: the patch's ``metadata.units`` (``"nJy"`` or ``"count"``);
+            :meth:`PatchCoadd.to_nddata <cellcoadd.model.patch_coadd.PatchCoadd.to_nddata>`
+            fills it in.
+        mask_bits : MaskBits, optional
+            Names of the mask bits (default :class:`MaskBits`); they go into ``meta`` as
+            ``MP_<NAME> = bit`` and name ``bad_bits``.
+        bad_bits : iterable of str, optional
+            Bits that make a pixel masked; default: any bit.
+        inner : bool
+            Cut to the inner box (default: the outer box, like the planes).
+        zero_point : float, optional
+            AB zero point of counts, written to ``meta["MAGZERO"]`` (not for nJy).
+
+        Returns
+        -------
+        astropy.nddata.CCDData
+            ``data``: a copy of the image (float32); ``unit``; ``wcs``: :attr:`wcs` (or
+            its shift to the inner box), so ``nddata.wcs`` maps ``data[j, i]`` to the sky
+            like the cell; ``uncertainty``: ``VarianceUncertainty`` of the variance plane
+            (unit squared); ``mask``: boolean, **True where a pixel is flagged** (astropy's
+            convention: it has any of ``bad_bits``); the integer bit mask stays in
+            :attr:`mask`. ``meta`` (an ``astropy.io.fits.Header``): ``TRACT``, ``CELL_X``,
+            ``CELL_Y``, ``MP_<NAME> = bit`` (upper-case ASCII names) and, for counts,
+            ``MAGZERO``. Noise realizations, ``mfrac`` and the PSF are not
+            included.
+        """
+        import astropy.units as u
+        from astropy.io import fits
+        from astropy.nddata import CCDData, VarianceUncertainty
+
+        from cellcoadd.geometry.wcs_utils import shifted_wcs
+
+        unit = u.Unit(unit)
+        bits = mask_bits if mask_bits is not None else MaskBits()
+        if inner:
+            planes = self.inner
+            image, variance, mask = planes.image, planes.variance, planes.mask
+            outer = self.outer_bbox
+            wcs = shifted_wcs(
+                self.wcs,
+                self.inner_bbox.x_start - outer.x_start,
+                self.inner_bbox.y_start - outer.y_start,
+            )
+        else:
+            image, variance, mask = self.image, self.variance, self.mask
+            wcs = self.wcs.deepcopy()
+        flagged = mask != 0 if bad_bits is None else (mask & bits.mask_of(bad_bits)) != 0
+        # a FITS header, so CCDData.write keeps the long (HIERARCH) MP_* keywords
+        meta = fits.Header()
+        meta["TRACT"], meta["CELL_X"], meta["CELL_Y"] = self.tract, *self.index
+        if zero_point is not None and unit != u.nJy:
+            meta["MAGZERO"] = (float(zero_point), "[mag] AB zero point of the pixel values")
+        for key, bit, comment in mask_plane_cards(bits.bits):
+            meta[f"HIERARCH {key}" if len(key) > 8 else key] = (bit, comment)
+        return CCDData(
+            np.array(image),
+            unit=unit,
+            wcs=wcs,
+            mask=flagged,
+            uncertainty=VarianceUncertainty(np.array(variance), unit=unit**2),
+            meta=meta,
         )
 
     def equals(self, other: object) -> bool:

@@ -92,13 +92,25 @@ class InputRecord(BaseModel):
     overlap_fraction : float
         Fraction (0..1) of the cell's outer box covered by the exposure's valid box.
     psf_fwhm : float
-        PSF full width at half maximum, arcsec (NaN when it could not be measured).
+        FWHM of the round Gaussian with the PSF's second-moment determinant,
+        ``2 sqrt(2 ln 2) det(M)^(1/4)``, arcsec (NaN when it could not be measured).
     psf_e1, psf_e2 : float
-        PSF ellipticity from adaptive second moments (NaN allowed).
+        PSF ellipticity as *distortions* (not reduced shears):
+        ``e1 = (Ixx - Iyy) / (Ixx + Iyy)``, ``e2 = 2 Ixy / (Ixx + Iyy)``, ``|e| = (a^2 -
+        b^2) / (a^2 + b^2)``, in the coadd's pixel frame (``x`` West, ``y`` North for the
+        tract's TAN projection; NaN allowed).
     psf_T : float
-        PSF size ``T = Ixx + Iyy`` from adaptive moments, arcsec^2 (NaN allowed).
+        PSF size ``T = Ixx + Iyy``, arcsec^2; ``2 sigma^2`` for a round Gaussian of
+        standard deviation ``sigma`` (NaN allowed).
     zero_point : float
         Photometric zero point of the exposure, mag (NaN allowed).
+
+    Notes on the PSF moments: ``I`` are GalSim HSM adaptive (elliptical-Gaussian-weighted)
+    second moments, equal to the unweighted ones for a Gaussian, of the exposure's PSF
+    *as warped onto the coadd's pixel grid* at the cell centre (the contribution the
+    coadd PSF averages, pixel response included), converted to arcsec with the coadd
+    WCS's local Jacobian (see :func:`cellcoadd.builder.psf.psf_moments`). Rejected inputs
+    have NaN.
 
     Notes
     -----
@@ -121,10 +133,22 @@ class InputRecord(BaseModel):
         WithJsonSchema({"enum": list(INPUT_STATUSES), "title": "Status", "type": "string"}),
     ]
     overlap_fraction: float = Field(ge=0.0, le=1.0)
-    psf_fwhm: float = Field(description="arcsec")
-    psf_e1: float
-    psf_e2: float
-    psf_T: float = Field(description="arcsec^2")
+    psf_fwhm: float = Field(
+        description="arcsec, FWHM of the round Gaussian of the same second-moment "
+        "determinant, 2 sqrt(2 ln 2) det(M)^(1/4)"
+    )
+    psf_e1: float = Field(
+        description="distortion (Ixx - Iyy) / (Ixx + Iyy) of the PSF's adaptive moments "
+        "on the coadd pixel grid (x West, y North); not a reduced shear"
+    )
+    psf_e2: float = Field(
+        description="distortion 2 Ixy / (Ixx + Iyy) of the PSF's adaptive moments on the "
+        "coadd pixel grid (x West, y North); not a reduced shear"
+    )
+    psf_T: float = Field(
+        description="arcsec^2, T = Ixx + Iyy of the PSF's adaptive moments on the coadd "
+        "pixel grid (2 sigma^2 for a round Gaussian)"
+    )
     zero_point: float = Field(description="mag")
 
     @field_validator("band")

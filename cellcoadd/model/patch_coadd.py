@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from functools import cached_property
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
+from astropy.wcs import WCS
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd._version import __version__
@@ -17,19 +18,49 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import NearestCenterRegion
 from cellcoadd.geometry.tract import Patch, Tract
+from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.units import (
+    NJY_ZERO_POINT,
+    PixelUnit,
+    is_njy_zero_point,
+    legacy_units,
+    mask_plane_cards,
+    normalise_unit,
+    unit_cards,
+)
 
 #: Version ``"MAJOR.MINOR"`` of the stored data model and file layouts. A major bump means
 #: readers of older majors cannot read the files (they refuse them); a minor bump only adds
 #: (fields, datasets, keywords), so readers of the same major read newer minors.
-FORMAT_VERSION = "1.1"
+#: 1.1: FITS ``DATACRC`` keywords. 1.2: ``units`` is an astropy unit string (``"nJy"`` or
+#: ``"count"``) and ``zero_point`` a field (older files' free text is mapped on reading),
+#: ``BuildConfig.units``; ``BUNIT``/``MAGZERO``/``MP_*`` keywords and attributes.
+FORMAT_VERSION = "1.2"
+
+#: The first format version whose ``units`` is an astropy unit string.
+UNITS_VERSION = (1, 2)
 
 _VERSION_PATTERN = re.compile(r"^(\d+)\.(\d+)$")
 
 Plane = Literal["image", "mask", "variance", "mfrac", "noise"]
+
+
+class Stitched(NamedTuple):
+    """A plane stitched over the patch inner box, with the WCS of its pixels.
+
+    ``wcs`` maps array pixel ``(0, 0)`` (0-based, ``array[0, 0]``) to the sky position of
+    tract pixel ``(bbox.x_start, bbox.y_start)``, exactly as each cell's ``wcs`` does for
+    its outer-box arrays, so a pixel of ``array`` and the same pixel of a cell map to the
+    same sky position.
+    """
+
+    array: np.ndarray
+    wcs: WCS
+    bbox: Box
 
 
 def parse_format_version(version: str) -> tuple[int, int]:
@@ -38,6 +69,27 @@ def parse_format_version(version: str) -> tuple[int, int]:
     if match is None:
         raise ValueError(f"format version {version!r} is not of the form MAJOR.MINOR")
     return int(match.group(1)), int(match.group(2))
+
+
+def _before_units(version: object) -> bool:
+    """Whether metadata of ``version`` predate unit strings (free-text ``units``)."""
+    if not isinstance(version, str):
+        return False
+    try:
+        return parse_format_version(version) < UNITS_VERSION
+    except ValueError:
+        return False
+
+
+def _build_zero_point(config: object) -> float | None:
+    """The zero point a (raw or validated) build configuration states, if any."""
+    if isinstance(config, BuildConfig):
+        return config.zero_point
+    if isinstance(config, dict):
+        value = config.get("zero_point")
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    return None
 
 
 class PatchMetadata(BaseModel):
@@ -55,8 +107,16 @@ class PatchMetadata(BaseModel):
         Patch index ``(px, py)`` inside the tract.
     band : str
         Filter name (Unicode allowed).
-    units : str
-        Units of the image plane, e.g. ``"nJy"`` or ``"counts at zero point 30"``.
+    units : "nJy" or "count"
+        Unit of the image and noise planes (the variance is in its square), an astropy
+        unit string: ``"nJy"`` (nanojansky per coadd pixel) or ``"count"`` (counts at
+        ``zero_point``). See :mod:`cellcoadd.model.units`. The free text of files before
+        format 1.2 (``"counts at zero point 30 per coadd pixel"``) is mapped on reading.
+    zero_point : float
+        AB zero point of the pixel values, mag: a source of magnitude ``m`` sums to
+        ``10**(-0.4 (m - zero_point))`` in ``units``. Exactly
+        :data:`~cellcoadd.model.units.NJY_ZERO_POINT` (31.4) for nJy, filled in when left
+        out; for counts it is required (taken from ``build_config`` when left out).
     mask_bits : MaskBits
         Names of the mask bits; must define ``NO_DATA``.
     build_config : BuildConfig
@@ -74,7 +134,16 @@ class PatchMetadata(BaseModel):
     tract_center: tuple[float, float] = Field(description="(ra, dec) of the tangent point, deg")
     patch: tuple[int, int]
     band: str
-    units: str = Field(min_length=1)
+    units: PixelUnit = Field(
+        description="astropy unit string of the image and noise planes (the variance is in "
+        "its square): nJy, or count (counts at zero_point)"
+    )
+    zero_point: float = Field(
+        NJY_ZERO_POINT,
+        gt=-50.0,
+        lt=100.0,
+        description="mag, AB zero point of the pixel values (31.4 for nJy)",
+    )
     mask_bits: MaskBits = Field(default_factory=MaskBits)
     build_config: BuildConfig = Field(default_factory=BuildConfig)
     software_version: str = __version__
@@ -84,6 +153,49 @@ class PatchMetadata(BaseModel):
     @classmethod
     def _check_band(cls, band: str) -> str:
         return check_band_name(band)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _map_units(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        text = data.get("units")
+        unit = normalise_unit(text)
+        stated: float | None = None
+        if unit is None and isinstance(text, str):
+            legacy = legacy_units(text)
+            if legacy is None and _before_units(data.get("format_version")):
+                legacy = ("count", None)  # old free text: counts at the build's zero point
+            if legacy is not None:
+                unit, stated = legacy
+        if unit is None:
+            return data  # refused by the field's validation
+        data = {**data, "units": unit}
+        zero_point = data.get("zero_point")
+        if unit == "nJy":
+            if zero_point is None or (
+                isinstance(zero_point, (int, float)) and is_njy_zero_point(float(zero_point))
+            ):
+                data["zero_point"] = NJY_ZERO_POINT
+        elif zero_point is None:
+            built = _build_zero_point(data.get("build_config"))
+            if stated is not None and built is not None and abs(stated - built) < 1e-3:
+                stated = built  # the text is rounded (%g); the configuration is exact
+            zero_point = stated if stated is not None else built
+            if zero_point is not None:
+                data["zero_point"] = zero_point
+        return data
+
+    @model_validator(mode="after")
+    def _check_units(self) -> PatchMetadata:
+        if self.units == "nJy" and self.zero_point != NJY_ZERO_POINT:
+            raise ValueError(
+                f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
+                f"{self.zero_point}; use units 'count' for counts at another zero point"
+            )
+        if self.units == "count" and "zero_point" not in self.model_fields_set:
+            raise ValueError("units 'count' need a zero_point (mag)")
+        return self
 
     @field_validator("tract_center")
     @classmethod
@@ -114,6 +226,25 @@ class PatchMetadata(BaseModel):
         if not all(0 <= p < n for p in self.patch):
             raise ValueError(f"patch {self.patch} is outside the tract's {n} x {n} patches")
         return self
+
+    @property
+    def unit(self) -> Any:
+        """:attr:`units` as an ``astropy.units.Unit``."""
+        import astropy.units as u
+
+        return u.Unit(self.units)
+
+    def unit_cards(self) -> dict[str, list[tuple[str, object, str]]]:
+        """``BUNIT`` (and for counts ``MAGZERO``) keywords of the ``image``, ``noise`` and
+        ``variance`` planes, and ``MP_<NAME> = bit`` keywords of the ``mask`` plane, as
+        ``(name, value, comment)`` by plane: FITS header cards and HDF5 attributes.
+
+        Mask-bit names that are not upper-case ASCII (letters, digits, ``_``) are left
+        out (FITS keywords cannot hold them); the metadata JSON names every bit.
+        """
+        cards = unit_cards(self.units, self.zero_point)
+        cards["mask"] = mask_plane_cards(self.mask_bits.bits)
+        return cards
 
     @property
     def n_noise(self) -> int:
@@ -196,6 +327,8 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
     --------
     >>> cell = patch_coadd[3, 4]              # doctest: +SKIP
     >>> image = patch_coadd.stitch("image")   # doctest: +SKIP
+    >>> image, wcs, bbox = patch_coadd.stitched("image")   # doctest: +SKIP
+    >>> nddata = patch_coadd.to_nddata((3, 4))  # doctest: +SKIP
     """
 
     def __init__(self, metadata: PatchMetadata, cells: Mapping[tuple[int, int], CellCoadd]) -> None:
@@ -269,8 +402,57 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         """The region covered by :meth:`stitch`, in tract pixels."""
         return self.metadata.patch_inner_bbox
 
+    @property
+    def stitch_wcs(self) -> WCS:
+        """WCS of the arrays :meth:`stitch` returns (array pixel ``(0, 0)`` is tract pixel
+        ``(x_start, y_start)`` of :attr:`patch_inner_bbox`).
+
+        Taken from a stored cell's WCS, shifted (so the stitched pixels map to the same
+        sky positions as the cells' pixels), or from the sky map when no cell is stored.
+        """
+        box = self.patch_inner_bbox
+        for cell in self.cells.values():
+            outer = cell.outer_bbox
+            return shifted_wcs(cell.wcs, box.x_start - outer.x_start, box.y_start - outer.y_start)
+        return shifted_wcs(self.metadata.geometry.tract.wcs, box.x_start, box.y_start)
+
+    def stitched(self, plane: Plane = "image", noise_index: int | None = None) -> Stitched:
+        """:meth:`stitch` together with the WCS and the tract-pixel box of the array.
+
+        Returns
+        -------
+        Stitched
+            Named tuple ``(array, wcs, bbox)``: the array of :meth:`stitch`,
+            :attr:`stitch_wcs` and :attr:`patch_inner_bbox`.
+        """
+        return Stitched(self.stitch(plane, noise_index), self.stitch_wcs, self.patch_inner_bbox)
+
+    def to_nddata(
+        self,
+        index: tuple[int, int],
+        *,
+        bad_bits: Iterable[str] | None = None,
+        inner: bool = False,
+    ) -> Any:
+        """Cell ``index`` as an ``astropy.nddata.CCDData`` in this patch's unit.
+
+        See :meth:`CellCoadd.to_nddata`; the unit, zero point and mask-bit names come from
+        the metadata.
+        """
+        meta = self.metadata
+        return self.cells[index].to_nddata(
+            meta.units,
+            mask_bits=meta.mask_bits,
+            bad_bits=bad_bits,
+            inner=inner,
+            zero_point=meta.zero_point,
+        )
+
     def stitch(self, plane: Plane = "image", noise_index: int | None = None) -> np.ndarray:
         """One contiguous array of a plane over the patch inner box, from inner-cell inner boxes.
+
+        The array alone, as before; :meth:`stitched` returns it with its WCS
+        (:attr:`stitch_wcs`).
 
         Parameters
         ----------
