@@ -397,6 +397,85 @@ def test_hdf5_swapped_planes_are_refused(tmp_path, originals):
     assert check_damaged(path, "coadd.h5", original) == "refused"
 
 
+def _structure_mutation(h5: h5py.File, rng: np.random.Generator, kind: str, other: Path) -> None:
+    """One structure-level edit of a cellcoadd HDF5 file (links, deleted groups, resized or
+    unallocated datasets), on a random cell and plane."""
+    cells = sorted(h5["cells"])
+    first, second = (str(c) for c in rng.choice(cells, 2, replace=False))
+    plane = str(rng.choice(["image", "mask", "variance", "mfrac", "noise", "psf", "inputs"]))
+    name, source = f"cells/{first}/{plane}", f"/cells/{second}/{plane}"
+    if kind == "soft link":
+        del h5[name]
+        h5[name] = h5py.SoftLink(source)
+    elif kind == "hard link":
+        del h5[name]
+        h5[name] = h5[source]
+    elif kind == "external link":
+        del h5[f"cells/{first}"]
+        h5[f"cells/{first}"] = h5py.ExternalLink(str(other), f"/cells/{first}")
+    elif kind == "deleted group":
+        del h5[f"cells/{first}"]
+    elif kind in ("resized", "unallocated"):
+        dataset = h5[name]
+        shape = list(dataset.shape) or [1]
+        if kind == "resized":
+            shape[0] += int(rng.integers(1, 1000))
+        data, dtype = dataset[()], dataset.dtype
+        del h5[name]
+        made = h5.create_dataset(
+            name, shape=tuple(shape), dtype=dtype, chunks=tuple(shape), fletcher32=True
+        )
+        if kind == "resized" and data.size:
+            made[tuple(slice(0, n) for n in data.shape)] = data
+        made.attrs["plane"] = np.bytes_(plane)
+
+
+@pytest.mark.parametrize(
+    "kind", ["soft link", "hard link", "external link", "deleted group", "resized", "unallocated"]
+)
+def test_hdf5_structure_mutations_are_refused(tmp_path, originals, kind):
+    raw, original = originals["coadd.h5"]
+    other = tmp_path / "other.h5"
+    other.write_bytes(raw)
+    path = tmp_path / "mutated.h5"
+    rng = np.random.default_rng(zlib.crc32(kind.encode()))
+    for _ in range(8):
+        rewrite_hdf5(raw, path, lambda h5: _structure_mutation(h5, rng, kind, other))
+        assert check_damaged(path, "coadd.h5", original) == "refused", kind
+        with pytest.raises(CellCoaddFormatError):
+            api.read(path, verify=False)
+
+
+def _set_card(raw: bytes, start: int, key: bytes, value: int) -> bytes:
+    """``raw`` with the integer card ``key`` of the header starting at ``start`` set."""
+    position = raw.index(key.ljust(8) + b"=", start)
+    card = f"{key.decode():<8}= {value:>20}".ljust(80).encode("ascii")
+    return raw[:position] + card + raw[position + 80 :]
+
+
+@pytest.mark.parametrize("kind", ["coadd.fits", "coadd.fits.fz", "exposure.fits"])
+def test_fits_headers_declaring_other_shapes_are_refused(tmp_path, originals, kind):
+    """A header whose NAXISn (ZNAXISn when tile compressed) disagrees with the data, with
+    checksums off for the coadd: refused, never read as another shape."""
+    raw, original = originals[kind]
+    probe = tmp_path / kind
+    probe.write_bytes(raw)
+    with fitsio.FITS(str(probe)) as fits:
+        headers = [hdu.get_offsets()["header_start"] for hdu in fits]
+        names = [hdu.get_extname() for hdu in fits]
+    key = b"ZNAXIS1" if kind.endswith(".fz") else b"NAXIS1"
+    targets = [i for i, n in enumerate(names) if n.endswith(("_PSF", "_MASK")) or n == "MASK"]
+    path = tmp_path / f"shaped-{kind}"
+    for index in targets[:6]:
+        for value in (1, 7, 4001):
+            hdu_key = b"NAXIS1" if names[index].endswith("_PSF") else key
+            path.write_bytes(_set_card(raw, headers[index], hdu_key, value))
+            assert check_damaged(path, kind, original) == "refused", (names[index], value)
+            if kind.startswith("coadd"):
+                with pytest.raises(CellCoaddFormatError):
+                    api.read(path, verify=False)
+
+
 def test_fits_wrong_version_keywords(tmp_path, originals):
     for kind, keyword, hdu in (
         ("coadd.fits", "CCVERS", 0),

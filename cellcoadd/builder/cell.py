@@ -206,8 +206,9 @@ def build_cell(
     Returns
     -------
     CellCoadd
-        Image in counts at ``config.zero_point`` per coadd pixel (surface brightness
-        scaled by the pixel-area ratio, so fluxes are conserved). A cell with no usable
+        Image in ``config.units`` per coadd pixel: nJy, or counts at
+        ``config.zero_point`` (surface brightness scaled by the pixel-area ratio, so
+        fluxes are conserved). A cell with no usable
         input is returned with ``is_empty=True``, a NaN image and a NO_DATA mask.
     """
     config = config or BuildConfig()
@@ -298,15 +299,38 @@ def _finish(
         )
     total = sums.weight
     psf = sums.psf / sums.psf.sum()
+    planes = {
+        "image": (sums.image / total).astype(np.float32),
+        "variance": (sums.variance / total**2).astype(np.float32),
+        "noise": (sums.noise / total).astype(np.float32),
+    }
+    _check_finite(cell, planes, sums.mask, mask_bits)
     return CellCoadd(
-        image=(sums.image / total).astype(np.float32),
+        **planes,
         mask=sums.mask,
-        variance=(sums.variance / total**2).astype(np.float32),
-        noise=(sums.noise / total).astype(np.float32),
         mfrac=np.clip(sums.mfrac / total, 0.0, 1.0).astype(np.float32),
         psf=psf,
         **common,
     )
+
+
+def _check_finite(
+    cell: Cell, planes: dict[str, np.ndarray], mask: np.ndarray, mask_bits: MaskBits
+) -> None:
+    """Refuse (FloatingPointError) a coadd with non-finite pixels outside ``NO_DATA``.
+
+    Selection rejects inputs whose contribution could overflow float32 (``bad_pixels``),
+    so this does not happen; if it did, the cell fails by name instead of being written.
+    """
+    no_data = mask_bits.value("NO_DATA") if "NO_DATA" in mask_bits.bits else 0
+    covered = (mask & no_data) == 0
+    for name, plane in planes.items():
+        bad = ~np.isfinite(plane) & covered
+        if bad.any():
+            raise FloatingPointError(
+                f"cell {cell.index} of tract {cell.tract}: {int(bad.sum())} non-finite "
+                f"{name} pixels outside NO_DATA"
+            )
 
 
 __all__ = ["build_cell", "check_mask_bits", "check_unique_inputs"]

@@ -209,7 +209,6 @@ def build_patch(
     *,
     workers: int = 1,
     scheduler: object | None = None,
-    units: str | None = None,
 ) -> PatchCoadd:
     """Build every cell (inner and border) of ``patch`` from ``exposures``.
 
@@ -222,7 +221,9 @@ def build_patch(
         (e.g. :class:`cellcoadd.io.MefExposureFile`) are described from their headers
         here and loaded by the workers, cut to each cell, one at a time.
     config : BuildConfig
-        Build settings (default ``BuildConfig()``), stored in the result.
+        Build settings (default ``BuildConfig()``), stored in the result. Its ``units``
+        and ``zero_point`` set the pixel unit (nJy by default, or counts at a zero
+        point), recorded as the metadata's ``units`` and ``zero_point``.
     seed : int
         Seed of the noise realizations.
     executor : concurrent.futures.Executor, optional
@@ -237,8 +238,6 @@ def build_patch(
         client (left open) to run the cells on, when no ``executor`` is given. The
         exposures are sent to the workers once (released at the end); each task carries
         a cell and references to its exposures. See the notes on the workers' settings.
-    units : str, optional
-        Pixel units recorded in the metadata (default: counts at the zero point).
 
     Raises
     ------
@@ -314,7 +313,8 @@ def build_patch(
         tract_center=patch.tract.center,
         patch=patch.index,
         band=bands[0],
-        units=units or f"counts at zero point {config.zero_point:g} per coadd pixel",
+        units=config.units,
+        zero_point=config.zero_point,
         mask_bits=mask_bits,
         build_config=config,
         software_version=__version__,

@@ -25,6 +25,11 @@ from cellcoadd.model.sources import ExposureHeader
 # Range of scaled background variances the float32 coadd planes can represent.
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: Largest scaled input value (and, squared, variance) accepted: room for the Lanczos-3
+#: kernel's negative lobes (sum of |weights| < 2 in 2-D), the pixel-area ratio and the
+#: noise realizations' Gaussian tails, so that every warped contribution stays finite in
+#: the float32 coadd planes.
+_LARGEST_INPUT = _FLOAT32_MAX / 1024.0
 
 
 # What evaluating a WCS far from its detector may raise (astropy's WCS errors are
@@ -190,12 +195,20 @@ def select_exposure(
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0
     if bad.mean() > config.max_mask_fraction:
         return Rejection(InputStatus.MASKED_FRACTION, overlap_fraction)
-    if not np.all(np.isfinite(exposure.image[footprint.slices][~bad])):
+    pixels = exposure.image[footprint.slices][~bad]
+    if not np.all(np.isfinite(pixels)):
+        return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
+    area = float(np.max(mapping.area_ratio))
+    if pixels.size and float(np.max(np.abs(pixels))) * flux_scale * area > _LARGEST_INPUT:
+        # finite, but its warped value would overflow the float32 coadd
         return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
     if isinstance(exposure.variance, np.ndarray):  # else a float
         variance = exposure.variance[footprint.slices][~bad]
         if not (np.all(np.isfinite(variance)) and np.all(variance > 0)):
             return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
+        if variance.size and float(np.max(variance)) * (flux_scale * area) ** 2 > _LARGEST_INPUT:
+            # also the per-pixel variance of noise realizations with noise_variance="pixel"
+            return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
     return Candidate(
         exposure=exposure,
         mapping=mapping,

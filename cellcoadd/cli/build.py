@@ -2,39 +2,19 @@
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 import click
 
-from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option, skymap_option
-
-
-def check_output_path(out: str, overwrite: bool) -> None:
-    """Refuse, before any work, an output the build could not write.
-
-    Raises
-    ------
-    click.ClickException
-        For a missing directory, an unknown extension, a CFITSIO-style name
-        (``x[1].fits``, ``!x.fits``) or an existing file without ``--overwrite``.
-    """
-    from cellcoadd.io.api import file_format
-
-    directory = os.path.dirname(os.path.abspath(out))
-    if not os.path.isdir(directory):
-        raise click.ClickException(f"{out}: the directory {directory} does not exist")
-    name = os.path.basename(out)
-    if name.startswith("!") or "[" in name or "]" in name:
-        raise click.ClickException(f"{out}: '!', '[' and ']' are not allowed in file names")
-    try:
-        file_format(out)
-    except ValueError as err:
-        raise click.ClickException(str(err)) from None
-    if os.path.exists(out) and not overwrite:
-        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+from cellcoadd.cli.options import (
+    check_output_path,
+    load_skymap,
+    parse_pair,
+    quiet_option,
+    skymap_option,
+)
 
 
 @click.command()
@@ -89,7 +69,7 @@ def build(
 
     \b
     Examples:
-      cellcoadd build sim/visit*.fits --skymap sim/skymap.json --tract 0 --patch 0,0 \\
+      cellcoadd build sim/visit*-det*.fits --skymap sim/skymap.json --tract 0 --patch 0,0 \\
           --out patch.fits --workers 2
       cellcoadd build --manifest des.toml --config des_build.toml --skymap skymap.json \\
           --tract 0 --patch 1,2 --out patch.h5 --scheduler tcp://127.0.0.1:8786
@@ -102,6 +82,7 @@ def build(
     from cellcoadd.io.manifest_io import read_build_config, read_manifest, sources_from_manifest
     from cellcoadd.model.build_config import BuildConfig
     from cellcoadd.model.sources import describe
+    from cellcoadd.pipelines.coverage import coverage_warning
 
     if not exposure_files and manifest is None:
         raise click.UsageError("give EXPOSURE_FILES or --manifest")
@@ -127,6 +108,9 @@ def build(
     used = sum(r.status == "used" for c in coadd.cells.values() for r in c.inputs)
     empty = sum(c.is_empty for c in coadd.cells.values())
     click.echo(
-        f"wrote {out}: {len(coadd.cells)} cells ({empty} empty), {used} cell inputs used, "
+        f"wrote {out}: {len(coadd.cells)} cells ({empty} empty), {used} input records used, "
         f"{time.perf_counter() - start:.1f} s"
     )
+    warning = coverage_warning(coadd)
+    if warning:
+        click.echo(warning, err=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -30,6 +31,35 @@ def load_skymap(path: str | None) -> SkyMap:
         raise click.ClickException(f"{path} is not a valid sky map file: {err}") from None
 
 
+def check_output_path(out: str, overwrite: bool, *, directory_may_be_created: bool = False) -> None:
+    """Refuse, before any work, a coadd output the command could not write.
+
+    Raises
+    ------
+    click.ClickException
+        For a missing directory (unless the command creates it), an unknown extension, a
+        CFITSIO-style name (``x[1].fits``, ``!x.fits``, see
+        :func:`cellcoadd.io.fits_paths.check_fits_path`) or an existing file without
+        ``--overwrite``.
+    """
+    from cellcoadd.io.api import file_format
+    from cellcoadd.io.fits_paths import check_fits_path
+
+    directory = os.path.dirname(os.path.abspath(out))
+    if not directory_may_be_created and not os.path.isdir(directory):
+        raise click.ClickException(f"{out}: the directory {directory} does not exist")
+    name = os.path.basename(out)
+    if name.startswith("!") or "[" in name or "]" in name:
+        raise click.ClickException(f"{out}: '!', '[' and ']' are not allowed in file names")
+    try:
+        if file_format(out) == "fits":
+            check_fits_path(out)
+    except ValueError as err:
+        raise click.ClickException(str(err)) from None
+    if os.path.exists(out) and not overwrite:
+        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+
+
 skymap_option = click.option(
     "--skymap",
     "skymap_path",
@@ -39,4 +69,11 @@ skymap_option = click.option(
 
 quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 
-__all__ = ["SkyMapConfig", "load_skymap", "parse_pair", "quiet_option", "skymap_option"]
+__all__ = [
+    "SkyMapConfig",
+    "check_output_path",
+    "load_skymap",
+    "parse_pair",
+    "quiet_option",
+    "skymap_option",
+]

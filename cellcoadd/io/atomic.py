@@ -2,15 +2,22 @@
 
 :func:`atomic_write` is the one way cellcoadd writes a file (patch coadds, exposures,
 simulation descriptions and tables, command-line outputs).
-Readers see either the previous file or the complete new one, never a partial file. A
-process killed mid-write can leave a hidden temporary file (``.<name>.tmp-<random>``)
-behind; it is safe to delete.
+Readers see either the previous file or the complete new one, never a partial file.
+
+Temporary files are named ``.<name>.tmp-<host>-<pid>-<random>`` (:func:`temporary_name`):
+the target's name, the host and the process writing it. A process killed mid-write leaves
+its temporary file behind; the next write of the same target on the same host removes
+every such file whose process no longer runs (:func:`remove_stale_temporaries`), so
+repeated crashes do not pile up partial files. Temporary files of other hosts, of live
+processes, and of other targets are left alone; they are safe to delete by hand.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import secrets
+import socket
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +27,52 @@ from cellcoadd.io.disk_space import disk_full_error
 def exists_error(target: str | os.PathLike[str]) -> FileExistsError:
     """The error of a write that would replace ``target`` without ``overwrite``."""
     return FileExistsError(f"{os.fspath(target)} exists; pass overwrite=True to replace it")
+
+
+def _host_tag() -> str:
+    # the host, as a name part CFITSIO and shells read literally
+    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:32] or "host"
+
+
+def temporary_name(target: str | os.PathLike[str]) -> str:
+    """Name of a new temporary file for ``target``: ``.<name>.tmp-<host>-<pid>-<random>``."""
+    name = Path(os.fspath(target)).name
+    return f".{name}.tmp-{_host_tag()}-{os.getpid()}-{secrets.token_hex(8)}"
+
+
+def _process_is_gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # exists, owned by someone else
+        return False
+    return False
+
+
+def remove_stale_temporaries(target: str | os.PathLike[str]) -> list[Path]:
+    """Delete the temporary files that writers of ``target`` on this host left when they
+    were killed (their process no longer runs); returns the paths removed."""
+    target = Path(os.fspath(target))
+    pattern = re.compile(
+        rf"^\.{re.escape(target.name)}\.tmp-{re.escape(_host_tag())}-(\d+)-[0-9a-f]{{16}}$"
+    )
+    removed: list[Path] = []
+    try:
+        entries = list(target.parent.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        match = pattern.match(entry.name)
+        if match is None or int(match.group(1)) == os.getpid():
+            continue
+        if _process_is_gone(int(match.group(1))):
+            try:
+                entry.unlink()
+            except OSError:
+                continue
+            removed.append(entry)
+    return removed
 
 
 def atomic_write(
@@ -32,7 +85,8 @@ def atomic_write(
 ) -> Path:
     """Write ``target`` atomically: ``write(temporary)``, flush to disk, then publish.
 
-    The temporary file is in the target's directory. It is published by a hard link when
+    The temporary file is in the target's directory (named by :func:`temporary_name`;
+    stale ones of the same target are removed first). It is published by a hard link when
     ``overwrite`` is false, which fails if the target appeared meanwhile (so of two
     concurrent writers of a new file exactly one succeeds and an existing file is never
     replaced), and by ``os.replace`` otherwise. On any failure the temporary file is
@@ -74,7 +128,8 @@ def atomic_write(
     directory = target.parent
     if not directory.is_dir():
         raise FileNotFoundError(f"{directory}: no such directory")
-    temporary = directory / f".{target.name}.tmp-{secrets.token_hex(8)}"
+    remove_stale_temporaries(target)
+    temporary = directory / temporary_name(target)
     if prepare is not None:
         prepare(temporary)
     try:

@@ -57,6 +57,7 @@ from cellcoadd.io.fits_checksums import (
     stabilise_fits_checksums,
     verify_hdu,
 )
+from cellcoadd.io.fits_paths import cfitsio_path, starts_like_fits
 from cellcoadd.io.wcs_header import as_float, read_wcs, same_float, wcs_cards
 from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
@@ -163,7 +164,7 @@ def write_exposure(
 
     def write_file(temporary: Path) -> None:
         # created by CFITSIO itself, so it gets the usual permissions (mkstemp would give 0600)
-        with fitsio.FITS(str(temporary), "rw", clobber=True) as fits_file:
+        with fitsio.FITS(cfitsio_path(temporary), "rw", clobber=True) as fits_file:
             write_hdus(fits_file)
         stabilise_fits_checksums(temporary)
 
@@ -211,7 +212,11 @@ def _with_file(path: str | os.PathLike[str], read: Callable[[fitsio.FITS, Binary
     # start and leave with an empty CFITSIO message stack (see cellcoadd.io.api.open)
     clear_cfitsio_messages()
     try:
-        with fitsio.FITS(os.fspath(path)) as fits_file, open(path, "rb") as raw:
+        name = cfitsio_path(path)
+        if not starts_like_fits(path):
+            # CFITSIO would first inflate a gzip (or compress, bzip2) stream into memory
+            raise _fail("not a FITS file (it does not start with SIMPLE)")
+        with fitsio.FITS(name) as fits_file, open(path, "rb") as raw:
             return read(fits_file, raw)
     except CellCoaddFormatError as err:
         raise CellCoaddFormatError(path, err.problem) from None
@@ -242,6 +247,7 @@ def _open_parts(
     for required in ("IMAGE", "MASK", "META"):
         if required not in names:
             raise _fail(f"missing HDU {required} (HDUs: {names})")
+    _check_declared_sizes(fits_file, names, raw)
     for hdu in fits_file:
         if verify_all or hdu.get_extname() in ("META", "PSF"):
             try:
@@ -292,6 +298,8 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Expo
     if cut.is_empty:
         raise _fail(f"box {box} is outside the image {full}")
 
+    _check_plane_dims(fits_file, names, full.shape)
+
     def pixels(hdu: str) -> np.ndarray:
         if cut == full:
             return _native(fits_file[hdu].read())
@@ -329,6 +337,40 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Expo
         valid_box=valid.shifted(-cut.x_start, -cut.y_start),
         origin=(ox + cut.x_start, oy + cut.y_start),
     )
+
+
+#: Largest ratio of declared to stored bytes of a tile-compressed HDU (deflate cannot
+#: compress more than about 1032:1; RICE less).
+_MAX_COMPRESSION = 1100
+
+
+def _check_plane_dims(fits_file: fitsio.FITS, names: list[str], shape: tuple[int, int]) -> None:
+    """Before any pixel is read: MASK and VARIANCE have the IMAGE's shape."""
+    for name in ("MASK", "VARIANCE"):
+        if name in names:
+            dims = tuple(int(d) for d in fits_file[name].get_dims())
+            if dims != shape:
+                raise _fail(f"{name} has dimensions {dims}, IMAGE {shape}")
+
+
+def _check_declared_sizes(fits_file: fitsio.FITS, names: list[str], raw: BinaryIO) -> None:
+    """Before any data is read: no image HDU declares more bytes than its stored data
+    unit can hold (a tile-compressed HDU is inflated whole by CFITSIO)."""
+    size = os.fstat(raw.fileno()).st_size
+    for name in ("IMAGE", "MASK", "VARIANCE", "PSF", "META"):
+        if name not in names:
+            continue
+        hdu = fits_file[name]
+        dims = [int(d) for d in hdu.get_dims()]
+        header = hdu.read_header()
+        bitpix = header.get("ZBITPIX", header.get("BITPIX", 8))
+        declared = int(np.prod(dims, dtype=np.float64)) * abs(int(bitpix)) // 8
+        offsets = hdu.get_offsets()
+        stored = min(int(offsets["data_end"]) - int(offsets["data_start"]), size)
+        if declared > _MAX_COMPRESSION * max(stored, 0) + 2880:
+            raise _fail(
+                f"{name} declares {dims} pixels ({declared} bytes) but stores {stored} bytes"
+            )
 
 
 def _read_meta(data: np.ndarray) -> dict[str, Any]:

@@ -28,6 +28,8 @@ from typing import Any, BinaryIO
 import fitsio
 import numpy as np
 
+from cellcoadd.io.fits_paths import cfitsio_path
+
 #: Keyword of the CRC-32 of an HDU's data unit as stored.
 DATACRC = "DATACRC"
 #: The card writers put in every HDU header; :func:`stabilise_fits_checksums` fills it in.
@@ -59,7 +61,7 @@ def stabilise_fits_checksums(path: str | os.PathLike[str]) -> None:
     keeping DATASUM, which covers the unchanged data. Readers verify the result like any
     FITS checksum. Call it once the file is complete: the CRC covers the data as stored.
     """
-    with fitsio.FITS(os.fspath(path)) as fits:
+    with fitsio.FITS(cfitsio_path(path)) as fits:
         offsets = [hdu.get_offsets() for hdu in fits]
     with open(path, "r+b") as stream, mmap.mmap(stream.fileno(), 0) as mapped:
         for extent in offsets:

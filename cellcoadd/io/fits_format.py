@@ -26,9 +26,16 @@ from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import format_version
-from cellcoadd.io.cell_records import PLANES, cell_record_json, expected_shapes, parse_cell_record
+from cellcoadd.io.cell_records import (
+    PLANES,
+    cell_record_json,
+    check_cell_geometry,
+    expected_shapes,
+    parse_cell_record,
+)
 from cellcoadd.io.coadd_file import CoaddFile
 from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER, verify_hdu
+from cellcoadd.io.fits_paths import cfitsio_path, check_fits_path
 from cellcoadd.io.format_version import (
     FILE_KIND,
     MAX_METADATA_BYTES,
@@ -47,20 +54,6 @@ _FLOAT_PLANES = ("image", "variance", "mfrac", "noise")
 _HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*PLANES, "inputs")}
 _FIRST_CELL_HDU = 3
 _FITS_MAGIC = b"SIMPLE  ="
-
-
-def check_fits_path(path: str) -> str:
-    """Refuse paths that CFITSIO would parse as extended file-name syntax, not as a file.
-
-    CFITSIO reads ``name(template)``, ``name[filter]`` and ``scheme://`` specially (it would
-    silently write or read a different file), so such FITS paths raise ValueError.
-    """
-    if any(char in path for char in "[]()") or "://" in path:
-        raise ValueError(
-            f"{path}: FITS paths must not contain '[', ']', '(', ')' or '://' "
-            "(CFITSIO would read them as extended file-name syntax)"
-        )
-    return path
 
 
 def extname(index: tuple[int, int], plane: str) -> str:
@@ -89,7 +82,9 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     planes = _cell_planes(patch.metadata.n_noise)
     n_hdu = _FIRST_CELL_HDU + len(planes) * len(indices)
     meta = patch.metadata
-    with fitsio.FITS(path, "rw", clobber=True) as fits:
+    # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
+    unit_cards = meta.unit_cards()
+    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
         fits.write(
             None,
             header=[
@@ -116,7 +111,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
         fits.write(_index_table(patch, planes), extname="CELLINDEX", header=[DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         for index in indices:
-            _write_cell(fits, patch.cells[index], compress=compress)
+            _write_cell(fits, patch.cells[index], compress=compress, plane_cards=unit_cards)
         # Readers check the length against it instead of walking every header to the end.
         size = fits[-1].get_offsets()["data_end"]
         fits[0].write_key("FILESIZE", size, comment="bytes in this file")
@@ -139,7 +134,13 @@ def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
     return table
 
 
-def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
+def _write_cell(
+    fits: fitsio.FITS,
+    cell: CellCoadd,
+    *,
+    compress: bool,
+    plane_cards: dict[str, list[tuple[str, object, str]]] | None = None,
+) -> None:
     keys: list[dict[str, Any]] = [
         {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
         {"name": "CELL_Y", "value": cell.index[1], "comment": "tract-global cell index y"},
@@ -153,6 +154,10 @@ def _write_cell(fits: fitsio.FITS, cell: CellCoadd, *, compress: bool) -> None:
             fits[-1].write_checksum()
             continue
         data = getattr(cell, plane)
+        plane_keys += [
+            {"name": key, "value": value, "comment": comment}
+            for key, value, comment in (plane_cards or {}).get(plane, [])
+        ]
         if plane == "image":
             # Standard WCS cards so viewers can place the image; the exact WCS is in CELLINDEX.
             plane_keys += _wcs_cards(cell)
@@ -210,7 +215,7 @@ class FitsCoaddFile(CoaddFile):
             self._opened: dict[int, Any] = {}  # fitsio HDU objects by number
             self._n_hdu = 0
             with reading_errors(path, "cannot open the FITS file"):
-                self._fits = fitsio.FITS(path)
+                self._fits = fitsio.FITS(cfitsio_path(path))
             metadata, rows = self._read_header_part(path, size)
         except BaseException:
             self.close()
@@ -328,6 +333,7 @@ class FitsCoaddFile(CoaddFile):
         key, row = self._row(index)
         with reading_errors(self.path, f"cell {key} identity"):
             identity = parse_cell_record(row["CELL"])
+            check_cell_geometry(self.metadata, identity)
         if identity["index"] != key or identity["tract"] != self.metadata.tract:
             raise CellCoaddFormatError(
                 self.path,

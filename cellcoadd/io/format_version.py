@@ -65,6 +65,13 @@ def decode_metadata(path: str, payload: bytes, version: str) -> PatchMetadata:
     if minor > parse_format_version(FORMAT_VERSION)[1]:
         data = _drop_unknown_fields(PatchMetadata, data)
     metadata = PatchMetadata.model_validate(data)
+    config = metadata.skymap_config
+    outer = config.cell_inner + 2 * config.cell_border
+    if metadata.psf_size > outer:
+        # the builder never makes such a stamp; a reader would allocate it for every cell
+        raise CellCoaddFormatError(
+            path, f"psf_size {metadata.psf_size} exceeds the cells' {outer}-pixel outer box"
+        )
     if metadata.format_version != version:
         raise CellCoaddFormatError(
             path,

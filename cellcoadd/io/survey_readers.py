@@ -31,6 +31,7 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs
+from cellcoadd.io.fits_paths import cfitsio_path
 from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, HduRef, MefLayout, zero_point_from
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
@@ -446,7 +447,7 @@ class _OpenFile:
         if not Path(self.path).is_file():
             raise CellCoaddFormatError(self.path, "no such file")
         try:
-            self._fits = fitsio.FITS(self.path)
+            self._fits = fitsio.FITS(cfitsio_path(self.path))
         except (OSError, ValueError) as err:
             raise CellCoaddFormatError(self.path, f"not a readable FITS file ({err})") from None
         return _Headers(self.path, self._fits)

@@ -22,6 +22,10 @@ DEFAULT_BITS: dict[str, int] = {
 #: Bits of the int32 mask plane that can carry a name (0 to 30).
 MAX_BITS = 31
 
+#: Longest mask-bit name: FITS stores it as the keyword ``MP_<NAME>`` (a HIERARCH card
+#: when longer than 8 characters), which must leave room for its value on an 80-byte card.
+MAX_NAME_LENGTH = 32
+
 
 def _lowest_free(bits: dict[str, int]) -> int:
     used = set(bits.values())
@@ -50,9 +54,25 @@ class MaskBits(BaseModel):
     @field_validator("bits")
     @classmethod
     def _check_bits(cls, bits: dict[str, int]) -> dict[str, int]:
+        keywords: dict[str, str] = {}
         for name, bit in bits.items():
-            if not name or not name.replace("_", "").isalnum():
-                raise ValueError(f"mask bit name {name!r} must be alphanumeric (underscores ok)")
+            # every format must store the name: FITS keywords MP_<NAME> take ASCII letters,
+            # digits and underscores, and are case-insensitive
+            if not name or not name.isascii() or not name.replace("_", "").isalnum():
+                raise ValueError(
+                    f"mask bit name {name!r} must be ASCII letters, digits and underscores "
+                    "(FITS keyword rules)"
+                )
+            if len(name) > MAX_NAME_LENGTH:
+                raise ValueError(
+                    f"mask bit name {name!r} is longer than {MAX_NAME_LENGTH} characters"
+                )
+            other = keywords.setdefault(name.upper(), name)
+            if other != name:
+                raise ValueError(
+                    f"mask bit names {other!r} and {name!r} differ only in case (FITS keywords "
+                    "do not)"
+                )
             if not 0 <= bit <= 30:
                 raise ValueError(f"mask bit {name!r} = {bit} is outside 0..30 (int32 plane)")
         if len(set(bits.values())) != len(bits):
