@@ -22,13 +22,15 @@ def patch_summary(path: str) -> dict[str, Any]:
     """Summary of a patch file without reading pixel data (used by ``cellcoadd info``).
 
     Keys: file, format, format_version, size_bytes, software_version, tract, patch, band,
-    units, n_noise, psf_size, planes, cells (counts), inputs (totals by status), per_cell
-    (one entry per cell: index, kind, used, rejected by reason).
+    units, zero_point (AB mag of the pixel values), n_noise, psf_size, planes, cells
+    (counts), inputs (totals by status), per_cell (one entry per cell: index, kind, used,
+    rejected by reason).
     """
     with api.open(path) as coadd_file:
         meta = coadd_file.metadata
         table = coadd_file.read_inputs()
         layout = coadd_file.format_name
+        layout_version = getattr(coadd_file, "layout_version", None)  # foreign layouts
         indices = list(coadd_file.cell_indices)
     inner = set(meta.inner_cell_indices)
     statuses: dict[tuple[int, int], Counter[str]] = {index: Counter() for index in indices}
@@ -50,7 +52,7 @@ def patch_summary(path: str) -> dict[str, Any]:
     planes = ["image", "mask", "variance", "mfrac"]
     planes += [f"noise ({meta.n_noise} realizations)"] if meta.n_noise else []
     planes += [f"psf ({meta.psf_size}x{meta.psf_size})", "inputs"]
-    return {
+    summary: dict[str, Any] = {
         "file": os.fspath(path),
         "format": layout,
         "format_version": meta.format_version,
@@ -60,6 +62,7 @@ def patch_summary(path: str) -> dict[str, Any]:
         "patch": list(meta.patch),
         "band": meta.band,
         "units": meta.units,
+        "zero_point": meta.zero_point,
         "n_noise": meta.n_noise,
         "psf_size": meta.psf_size,
         "planes": planes,
@@ -82,6 +85,9 @@ def patch_summary(path: str) -> dict[str, Any]:
         },
         "per_cell": per_cell,
     }
+    if layout_version is not None:  # e.g. the VERSION of an lsst.cell_coadds file
+        summary["layout_version"] = layout_version
+    return summary
 
 
 def _format_size(n_bytes: int) -> str:
@@ -100,10 +106,12 @@ def _summary_text(summary: dict[str, Any], per_cell: bool) -> str:
     per = inputs["used_per_cell"]
     lines = [
         f"file      {summary['file']} ({summary['format'].upper()}, "
-        f"{_format_size(summary['size_bytes'])}, format {summary['format_version']}, "
+        f"{_format_size(summary['size_bytes'])}, format "
+        f"{summary.get('layout_version', summary['format_version'])}, "
         f"cellcoadd {summary['software_version']})",
         f"patch     tract {summary['tract']}, patch ({summary['patch'][0]}, "
-        f"{summary['patch'][1]}), band {summary['band']}, units {summary['units']}",
+        f"{summary['patch'][1]}), band {summary['band']}, units {summary['units']}"
+        + (f" (AB zero point {summary['zero_point']:g})" if summary["units"] == "count" else ""),
         f"cells     {cells['total']} ({cells['inner']} inner + {cells['border']} border), "
         f"{cells['empty']} empty, {cells['missing_inner']} inner missing",
         f"planes    {', '.join(summary['planes'])}",
@@ -155,19 +163,36 @@ def info_command(path: str, as_json: bool, per_cell: bool) -> None:
     help="Lossless compression (default: only for .fits.fz names).",
 )
 @click.option("--overwrite", is_flag=True, help="Replace DESTINATION if it exists.")
+@click.option(
+    "--layout",
+    type=click.Choice(["cell_coadds"]),
+    default=None,
+    help="Write the LSST lsst.cell_coadds FITS layout (a .fits DESTINATION).",
+)
 def convert_command(
-    source: str, destination: str, compression: api.Compression | None, overwrite: bool
+    source: str,
+    destination: str,
+    compression: api.Compression | None,
+    overwrite: bool,
+    layout: api.Layout | None,
 ) -> None:
     """Copy a patch coadd into another layout (chosen by the file name), bit for bit.
+
+    An lsst.cell_coadds SOURCE is recognised by its headers; --layout cell_coadds writes
+    that layout.
 
     \b
     Examples:
       cellcoadd convert patch.fits patch.h5
       cellcoadd convert patch.h5 patch.fits.fz
       cellcoadd convert patch.fits small.h5 --compression lossless --overwrite
+      cellcoadd convert patch.h5 lsst_cells.fits --layout cell_coadds
+      cellcoadd convert lsst_cells.fits from_lsst.h5
     """
     try:
-        written = api.convert(source, destination, compression=compression, overwrite=overwrite)
+        written = api.convert(
+            source, destination, compression=compression, overwrite=overwrite, layout=layout
+        )
     except FileExistsError as err:
         raise click.ClickException(f"{destination} exists; use --overwrite to replace it") from err
     except _ERRORS as err:

@@ -2,10 +2,11 @@
 
 The layout follows the file name: ``.fits`` and ``.fits.fz`` (fitsio), ``.h5`` and
 ``.hdf5`` (h5py). Writes are atomic (:func:`cellcoadd.io.atomic.atomic_write`): the file is
-written to a hidden temporary file in the target directory (``.<name>.tmp-<random>``),
-flushed to disk and renamed over the target, so readers see either the previous file or
-the complete new one. A process killed mid-write can leave such a temporary file behind;
-it is safe to delete. A write that does not fit on the disk is refused before it starts,
+written to a hidden temporary file in the target directory
+(``.<name>.tmp-<host>-<pid>-<random>``), flushed to disk and renamed over the target, so
+readers see either the previous file or the complete new one. A process killed mid-write
+leaves such a temporary file behind; the next write of the same target removes it (see
+:mod:`cellcoadd.io.atomic`). A write that does not fit on the disk is refused before it starts,
 and one that fills the disk midway raises ``OSError(ENOSPC)`` naming the target and leaves
 no file behind (except that HDF5 2.0 may crash the process instead; see
 ``docs/reliability.md``).
@@ -27,6 +28,8 @@ from pathlib import Path
 from typing import Literal
 
 from cellcoadd.io.atomic import atomic_write, exists_error
+from cellcoadd.io.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
+from cellcoadd.io.cell_coadds_reader import CellCoaddsFile
 from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io.coadd_file import CoaddFile
 from cellcoadd.io.disk_space import check_free_space
@@ -39,6 +42,8 @@ from cellcoadd.model.patch_coadd import PatchCoadd
 
 Compression = Literal["none", "lossless"]
 FileFormat = Literal["fits", "hdf5"]
+#: Layouts chosen explicitly (``write(..., layout=...)``); None follows the file name.
+Layout = Literal["cell_coadds"]
 
 #: File name endings -> layout, longest first so ``.fits.fz`` wins over ``.fz``.
 SUPPORTED_EXTENSIONS: dict[str, FileFormat] = {
@@ -86,6 +91,7 @@ def write(
     *,
     compression: Compression | None = None,
     overwrite: bool = False,
+    layout: Layout | None = None,
 ) -> Path:
     """Write a patch coadd atomically.
 
@@ -100,6 +106,9 @@ def write(
         ``None``: lossless for ``.fits.fz`` names, uncompressed otherwise.
     overwrite : bool
         Replace an existing file (FileExistsError otherwise).
+    layout : {None, "cell_coadds"}
+        ``"cell_coadds"``: the LSST pipelines' ``lsst.cell_coadds`` FITS layout (a ``.fits``
+        name, no compression; see ``docs/format.md``). None: our layout, by file name.
 
     Returns
     -------
@@ -118,17 +127,20 @@ def write(
     if not isinstance(patch_coadd, PatchCoadd):
         raise TypeError(f"expected a PatchCoadd, got {type(patch_coadd).__name__}")
     target = Path(os.fspath(path))
-    layout = file_format(target)
+    file_kind = file_format(target)
     compress = _use_compression(str(target), compression)
+    writer = _WRITERS[file_kind]
+    if layout is not None:
+        writer = _foreign_writer(target, file_kind, layout, compress)
 
     def prepare(temporary: Path) -> None:
-        if layout == "fits":
+        if file_kind == "fits":
             check_fits_path(str(temporary))
         check_free_space(target, _estimated_size(patch_coadd))
 
     def write_file(temporary: Path) -> None:
-        _WRITERS[layout](patch_coadd, str(temporary), compress=compress)
-        if layout == "fits":
+        writer(patch_coadd, str(temporary), compress=compress)
+        if file_kind == "fits":
             stabilise_fits_checksums(temporary)
 
     return atomic_write(
@@ -136,8 +148,21 @@ def write(
         write_file,
         overwrite=overwrite,
         prepare=prepare,
-        on_failure=clear_cfitsio_messages if layout == "fits" else None,
+        on_failure=clear_cfitsio_messages if file_kind == "fits" else None,
     )
+
+
+def _foreign_writer(
+    target: Path, file_kind: FileFormat, layout: str, compress: bool
+) -> Callable[..., None]:
+    """The writer of an explicitly chosen ``layout`` (ValueError if the name does not fit)."""
+    if layout != "cell_coadds":
+        raise ValueError(f"unknown layout {layout!r}; use None or 'cell_coadds'")
+    if file_kind != "fits" or str(target).lower().endswith(".fz"):
+        raise ValueError(f"{target}: the cell_coadds layout needs a .fits file name")
+    if compress:
+        raise ValueError(f"{target}: the cell_coadds layout is not compressed")
+    return write_cell_coadds
 
 
 def _estimated_size(patch_coadd: PatchCoadd) -> int:
@@ -171,10 +196,15 @@ def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
         ``path`` does not exist.
     CellCoaddFormatError
         ``path`` is not an intact cellcoadd patch file of a supported major version.
+
+    A ``.fits`` file in the LSST ``lsst.cell_coadds`` layout is recognised by its headers
+    and opened as such (``format_name == "cell_coadds"``).
     """
     name = os.fspath(path)
     layout = file_format(name)
     with _fresh_cfitsio_messages(layout):
+        if layout == "fits" and is_cell_coadds_file(name):  # the LSST layout, by its headers
+            return CellCoaddsFile(name, verify=verify)
         return _READERS[layout](name, verify=verify)
 
 
@@ -218,9 +248,16 @@ def convert(
     *,
     compression: Compression | None = None,
     overwrite: bool = False,
+    layout: Layout | None = None,
 ) -> Path:
-    """Copy a patch file into another layout or compression, losslessly."""
+    """Copy a patch file into another layout or compression, losslessly.
+
+    ``layout="cell_coadds"`` writes the LSST ``lsst.cell_coadds`` layout (see :func:`write`);
+    such a source is recognised by its headers.
+    """
     file_format(destination)  # fail on a bad name before reading anything
     if Path(os.fspath(destination)).exists() and not overwrite:
         raise exists_error(destination)
-    return write(read(source), destination, compression=compression, overwrite=overwrite)
+    return write(
+        read(source), destination, compression=compression, overwrite=overwrite, layout=layout
+    )

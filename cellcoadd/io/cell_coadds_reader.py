@@ -1,0 +1,452 @@
+"""Reader of the lsst.cell_coadds FITS layout (fitsio only, no LSST software needed).
+
+A file written by :func:`~cellcoadd.io.cell_coadds_layout.write_cell_coadds` carries our
+extension HDUs and reads back exactly. A file written by the LSST pipelines has none: the
+patch metadata are then derived from its headers (see ``docs/format.md``), every cell of
+the table becomes a cell with its used inputs, and nothing else is invented.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import warnings
+from typing import Any
+
+import fitsio
+import numpy as np
+from astropy.io import fits
+from astropy.wcs import WCS
+
+from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.io.cell_coadds_layout import (
+    EXT_CELLS,
+    EXT_INPUTS,
+    EXT_METADATA,
+    LEGACY_ZERO_POINT,
+    LSST_UNITS,
+    MAX_VERSION,
+    MIN_VERSION,
+    CellGrid,
+    grid_of,
+    shape_from_quadrupole,
+)
+from cellcoadd.io.cell_records import expected_shapes, parse_cell_record
+from cellcoadd.io.coadd_file import CoaddFile
+from cellcoadd.io.fits_checksums import verify_hdu
+from cellcoadd.io.fits_format import check_fits_path
+from cellcoadd.io.format_version import MAX_METADATA_BYTES, decode_metadata, sha256_hex
+from cellcoadd.io.inputs_table import inputs_from_array
+from cellcoadd.io.read_checks import check_path_readable, reading_errors
+from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.model.cell_coadd import CellCoadd
+from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.maskbits import MAX_BITS, MaskBits
+from cellcoadd.model.patch_coadd import PatchMetadata
+from cellcoadd.model.units import NJY_ZERO_POINT
+
+_VERSION = re.compile(r"^(\d+)\.(\d+)(\.\d+)?$")
+_PLANE_TYPES = {"image": "f4", "mask": "i4", "variance": "f4", "psf": "f8", "maskfrac": "f4"}
+
+
+def _native(array: np.ndarray) -> np.ndarray:
+    """``array`` in native byte order, bits untouched (FITS tables are big-endian)."""
+    return np.ascontiguousarray(array).astype(array.dtype.newbyteorder("="), copy=False)
+
+
+class CellCoaddsFile(CoaddFile):
+    """An lsst.cell_coadds FITS file opened lazily: a cell's row is read on demand."""
+
+    format_name = "cell_coadds"
+
+    def __init__(self, path: str, *, verify: bool = True) -> None:
+        check_fits_path(path)
+        check_path_readable(path)
+        self.path, self.verify = path, verify
+        self._raw: Any = open(path, "rb")  # for the checksums; closed by close()
+        self._fits: Any = None
+        self._checked: set[int] = set()
+        try:
+            with reading_errors(path, "cannot open the FITS file"):
+                self._fits = fitsio.FITS(path)
+                self._numbers = {
+                    hdu.get_extname().upper(): n for n, hdu in enumerate(self._fits) if n > 1
+                }
+            header = self._header(1)
+            self.layout_version = self._check_version(header)
+            self._rows, self._columns = self._read_cell_ids(header)
+            if EXT_METADATA in self._numbers:
+                metadata, self._identities, self._inputs = self._read_extension(header)
+                self._tract_wcs: WCS | None = None
+            else:
+                metadata = self._derive_metadata(header)
+                self._identities = {}
+                self._tract_wcs = self._read_tract_wcs()
+                self._inputs = self._read_used_inputs(metadata)
+            self._check_columns(metadata)
+        except BaseException:
+            self.close()
+            raise
+        indices = sorted({*self._rows, *self._identities})
+        super().__init__(path, metadata, indices)
+
+    # -------------------------------------------------------------------- HDUs and checks
+
+    def _name(self, number: int) -> str:
+        if number == 0:
+            return "HDU 0 (primary)"
+        if number == 1:
+            return "HDU 1 (cell table)"
+        names = {n: name for name, n in self._numbers.items()}
+        return f"HDU {number} ({names.get(number, '?')})"
+
+    def _fail(self, number: int, problem: str) -> CellCoaddFormatError:
+        return CellCoaddFormatError(self.path, f"{self._name(number)}: {problem}")
+
+    def _hdu(self, number: int) -> Any:
+        """HDU ``number``, its checksums verified once (when verifying)."""
+        with reading_errors(self.path, self._name(number)):
+            hdu = self._fits[number]
+            if self.verify and number not in self._checked:
+                verify_hdu(self._raw, hdu.get_offsets())
+                self._checked.add(number)
+        return hdu
+
+    def _named(self, name: str) -> int:
+        if name not in self._numbers:
+            raise CellCoaddFormatError(self.path, f"HDU {name} is missing")
+        return self._numbers[name]
+
+    def _header(self, number: int) -> Any:
+        if number == 1:  # the cell table: the checksum pass waits for the first cell read
+            with reading_errors(self.path, self._name(1)):
+                if len(self._fits) < 2 or self._fits[1].get_exttype() != "BINARY_TBL":
+                    raise ValueError("not a binary table")
+                return self._fits[1].read_header()
+        with reading_errors(self.path, self._name(number)):
+            return self._hdu(number).read_header()
+
+    def _table(self, number: int) -> np.ndarray | None:
+        hdu = self._hdu(number)
+        with reading_errors(self.path, self._name(number)):
+            return hdu.read() if hdu.get_nrows() else None
+
+    def _int(self, header: Any, key: str, number: int = 1) -> int:
+        value = header.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise self._fail(number, f"keyword {key} must be an integer, got {value!r}")
+        return int(value)
+
+    def _pair(self, header: Any, key: str) -> int:
+        first, second = self._int(header, f"{key}1"), self._int(header, f"{key}2")
+        if first != second:
+            raise self._fail(1, f"{key}1 = {first} and {key}2 = {second}: cellcoadd needs squares")
+        return first
+
+    def _check_version(self, header: Any) -> str:
+        version = str(header.get("VERSION", "")).strip()
+        match = _VERSION.match(version)
+        if match is None:
+            raise self._fail(1, f"VERSION {version!r} is not a version number")
+        number = (int(match.group(1)), int(match.group(2)))
+        if not MIN_VERSION <= number < MAX_VERSION:
+            raise self._fail(
+                1,
+                f"lsst.cell_coadds file VERSION {version} is not supported "
+                f"(read: {MIN_VERSION[0]}.{MIN_VERSION[1]} <= VERSION < "
+                f"{MAX_VERSION[0]}.{MAX_VERSION[1]})",
+            )
+        return version
+
+    def _grid(self, header: Any) -> CellGrid:
+        inner, outer = self._pair(header, "GRCELL"), self._pair(header, "OCELL")
+        if inner <= 0 or outer < inner or (outer - inner) % 2:
+            raise self._fail(1, f"outer cells of {outer} px do not pad {inner} px inner cells")
+        first = []
+        for axis in "12":
+            start = self._int(header, f"GRMIN{axis}")
+            if start % inner:
+                raise self._fail(1, f"GRMIN{axis} = {start} is not on the {inner}-pixel cell grid")
+            first.append(start // inner)
+        shape = self._pair(header, "GRSHAPE")
+        return CellGrid(cell_inner=inner, cell_outer=outer, shape=shape, first=(first[0], first[1]))
+
+    def _read_cell_ids(self, header: Any) -> tuple[dict[tuple[int, int], int], dict[str, Any]]:
+        """Tract-global index -> row of the cell table, and the table's column dtypes."""
+        self._grid_header = self._grid(header)
+        with reading_errors(self.path, self._name(1)):
+            hdu = self._fits[1]
+            dtype = hdu.get_rec_dtype()[0]
+            columns = {name: dtype[name] for name in dtype.names}
+            if "cell_id" not in columns:
+                raise ValueError("column 'cell_id' is missing")
+            ids: Any = np.zeros((0, 2), dtype=int)
+            if hdu.get_nrows():
+                ids = hdu.read_column("cell_id")
+            ids = np.asarray(ids).reshape(-1, 2)
+        rows: dict[tuple[int, int], int] = {}
+        grid = self._grid_header
+        for row, (i, j) in enumerate(ids.tolist()):
+            if not (0 <= i < grid.shape and 0 <= j < grid.shape):
+                raise self._fail(1, f"row {row}: cell_id ({i}, {j}) is outside the grid")
+            key = grid.global_index((int(i), int(j)))
+            if key in rows:
+                raise self._fail(1, f"cell_id ({i}, {j}) appears in rows {rows[key]} and {row}")
+            rows[key] = row
+        return rows, columns
+
+    def _check_columns(self, meta: PatchMetadata) -> None:
+        side, psf = meta.cell_outer, meta.psf_size
+        wanted = {name: (kind, (side, side)) for name, kind in _PLANE_TYPES.items()}
+        wanted["psf"] = ("f8", (psf, psf))
+        wanted.update({f"noise_{n:02}": ("f4", (side, side)) for n in range(meta.n_noise)})
+        for name, (kind, shape) in wanted.items():
+            found = self._columns.get(name)
+            if found is None:
+                if name == "maskfrac":
+                    continue  # optional: read as zeros
+                raise self._fail(1, f"column {name!r} is missing")
+            base, dims = (found.base, found.shape) if found.subdtype else (found, ())
+            if base.kind + str(base.itemsize) != kind or dims != shape:
+                raise self._fail(1, f"column {name!r} is {base}{dims}, expected {kind}{shape}")
+
+    # -------------------------------------------------------------------- our extension
+
+    def _read_extension(
+        self, header: Any
+    ) -> tuple[PatchMetadata, dict[tuple[int, int], dict[str, Any]], dict[Any, list[InputRecord]]]:
+        number = self._named(EXT_METADATA)
+        hdu = self._hdu(number)
+        with reading_errors(self.path, self._name(number)):
+            dims = hdu.get_dims()
+            if len(dims) != 1 or not 0 < dims[0] <= MAX_METADATA_BYTES:
+                raise ValueError(f"dimensions {dims}")
+            payload = hdu.read().astype(np.uint8, copy=False).tobytes()
+            keys = hdu.read_header()
+            if keys.get("METASHA") != sha256_hex(payload):
+                raise ValueError("metadata SHA-256 mismatch: corrupted metadata")
+            metadata = decode_metadata(self.path, payload, str(keys.get("CCVERS")))
+        if grid_of(metadata) != self._grid_header or (
+            self._int(header, "TRACT"),
+            self._int(header, "PATCH_X"),
+            self._int(header, "PATCH_Y"),
+        ) != (metadata.tract, *metadata.patch):
+            raise self._fail(number, "the cellcoadd metadata disagree with the cell table header")
+        number = self._named(EXT_CELLS)
+        identities: dict[tuple[int, int], dict[str, Any]] = {}
+        stored = {row: key for key, row in self._rows.items()}
+        table = self._table(number)
+        with reading_errors(self.path, self._name(number)):
+            for entry in [] if table is None else table:
+                key = (int(entry["CELL_X"]), int(entry["CELL_Y"]))
+                identity = parse_cell_record(entry["CELL"])
+                row = int(entry["ROW"])
+                if identity["index"] != key or stored.get(row, key if row < 0 else None) != key:
+                    raise ValueError(f"cell {key} (row {row}) does not match the cell table")
+                identities[key] = identity
+            if not set(self._rows) <= set(identities):
+                raise ValueError("the cell table has cells this table does not list")
+        number = self._named(EXT_INPUTS)
+        inputs: dict[Any, list[InputRecord]] = {}
+        table = self._table(number)
+        with reading_errors(self.path, self._name(number)):
+            for key in identities:
+                if table is None:
+                    break
+                selected = (table["CELL_X"] == key[0]) & (table["CELL_Y"] == key[1])
+                inputs[key] = inputs_from_array(table[selected], ascii_only=True)
+        return metadata, identities, inputs
+
+    # -------------------------------------------------------------------- LSST-only files
+
+    def _read_tract_wcs(self) -> WCS:
+        header = self._header(0)
+        with reading_errors(self.path, f"{self._name(0)}: the WCS"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # astropy's notes on fixed-up cards
+            text = "\n".join(record["card_string"] for record in header.records())
+            wcs = WCS(fits.Header.fromstring(text, sep="\n"), naxis=2)
+        if not wcs.has_celestial:
+            raise self._fail(0, "no celestial WCS")
+        if wcs.wcs.has_cd():  # afw writes CD; our WCS records hold PC and CDELT
+            cd = wcs.wcs.cd.copy()
+            del wcs.wcs.cd
+            wcs.wcs.pc, wcs.wcs.cdelt = cd, [1.0, 1.0]
+            wcs.wcs.set()
+        return wcs
+
+    def _mask_bits(self) -> MaskBits:
+        number = self._named("MASKDEF")
+        table = self._table(number)
+        bits: dict[str, int] = {}
+        for entry in [] if table is None else table:
+            name, bit = str(entry["MASK_NAME"]).strip(), int(entry["BIT_VALUE"])
+            if not 0 <= bit < MAX_BITS:
+                raise self._fail(number, f"mask plane {name!r} is bit {bit}; cellcoadd has 0..30")
+            bits[name] = bit
+        if "NO_DATA" not in bits:
+            bits["NO_DATA"] = min(set(range(MAX_BITS)) - set(bits.values()))
+        with reading_errors(self.path, self._name(number)):
+            return MaskBits(bits=bits)
+
+    def _derive_metadata(self, header: Any) -> PatchMetadata:
+        """Patch metadata of a file without our extension, from its headers and MASKDEF."""
+        grid = self._grid_header
+        px, py = self._int(header, "PATCH_X"), self._int(header, "PATCH_Y")
+        # GRMIN = (patch * cells_per_patch - border) * cell_inner, GRSHAPE = cells + 2 border
+        borders = set()
+        for patch, first in ((px, grid.first[0]), (py, grid.first[1])):
+            border, rest = divmod(patch * grid.shape - first, 2 * patch + 1)
+            borders.add(border if rest == 0 and 0 <= 2 * border < grid.shape else -1)
+        border = borders.pop()
+        if borders or border < 0:
+            raise self._fail(1, "GRMIN/GRSHAPE do not place the patch's cells on a tract grid")
+        per_patch = grid.shape - 2 * border
+        units = str(header.get("TUNIT2", "")).strip()
+        if units not in LSST_UNITS:
+            raise self._fail(1, f"TUNIT2 = {units!r}, expected one of {', '.join(LSST_UNITS)}")
+        if units == "chi":
+            raise self._fail(1, "TUNIT2 = 'chi': cellcoadd holds flux coadds (nJy or counts)")
+        unit, zero_point = (
+            ("nJy", NJY_ZERO_POINT) if units == "nJy" else ("count", LEGACY_ZERO_POINT)
+        )
+        wcs = self._read_tract_wcs()
+        scale = float(np.sqrt(abs(np.linalg.det(wcs.pixel_scale_matrix)))) * 3600.0
+        scale = float(f"{scale:.12g}")  # the sky map's nominal value, not its rounding
+        crpix = wcs.wcs.crpix
+        tract_pixels = 2.0 * crpix[0] - 1.0  # our tract WCS: CRPIX at the box centre
+        patch_inner = per_patch * grid.cell_inner
+        patches = max(px, py) + 1
+        if crpix[0] == crpix[1] and tract_pixels == round(tract_pixels):
+            if round(tract_pixels) % patch_inner == 0:
+                patches = max(patches, round(tract_pixels) // patch_inner)
+        with reading_errors(self.path, f"{self._name(1)}: deriving the patch metadata"):
+            config = SkyMapConfig(
+                pixel_scale=scale,
+                cell_inner=grid.cell_inner,
+                cell_border=(grid.cell_outer - grid.cell_inner) // 2,
+                cells_per_patch=per_patch,
+                patch_border_cells=border,
+                patches_per_tract=patches,
+            )
+            return PatchMetadata(
+                skymap_config=config,
+                tract=self._int(header, "TRACT"),
+                tract_center=(float(wcs.wcs.crval[0]) % 360.0, float(wcs.wcs.crval[1])),
+                patch=(px, py),
+                band=str(header.get("FILTER", "")).strip(),
+                units=unit,
+                zero_point=zero_point,
+                mask_bits=self._mask_bits(),
+                build_config=BuildConfig(
+                    n_noise=self._int(header, "NNOISE") if "NNOISE" in header else 0,
+                    psf_size=self._pair(header, "PSFSIZE"),
+                    units=unit,
+                    zero_point=zero_point,
+                ),
+                software_version=f"lsst.cell_coadds (file VERSION {self.layout_version})",
+            )
+
+    def _read_used_inputs(self, meta: PatchMetadata) -> dict[Any, list[InputRecord]]:
+        number = self._named("CELL")
+        table = self._table(number)
+        scale = meta.skymap_config.pixel_scale
+        zero_point = math.nan  # the exposures' own zero points are not recorded
+        inputs: dict[Any, list[InputRecord]] = {}
+        for row, entry in enumerate([] if table is None else table):
+            with reading_errors(self.path, f"{self._name(number)} row {row}"):
+                key = self._grid_header.global_index((int(entry["cell_x"]), int(entry["cell_y"])))
+                shape = shape_from_quadrupole(
+                    float(entry["psf_shape_ixx"]),
+                    float(entry["psf_shape_iyy"]),
+                    float(entry["psf_shape_ixy"]),
+                    bool(entry["psf_shape_flag"]),
+                    scale,
+                )
+                record = InputRecord(
+                    visit=int(entry["visit"]),
+                    detector=int(entry["detector"]),
+                    band=meta.band,
+                    weight=float(entry["weight"]),
+                    status="used",
+                    overlap_fraction=float(entry["overlap_fraction"]),
+                    zero_point=zero_point,
+                    **shape,
+                )
+                if key not in self._rows:
+                    raise ValueError(f"cell {key} has no row in the cell table")
+                inputs.setdefault(key, []).append(record)
+        return inputs
+
+    # -------------------------------------------------------------------- cells
+
+    def _identity(self, key: tuple[int, int]) -> dict[str, Any]:
+        if key in self._identities:
+            return self._identities[key]
+        inner, outer = self.metadata.cell_boxes(key)
+        assert self._tract_wcs is not None
+        wcs = shifted_wcs(self._tract_wcs, outer.x_start, outer.y_start)
+        return {
+            "tract": self.metadata.tract,
+            "index": key,
+            "inner_bbox": inner,
+            "outer_bbox": outer,
+            "wcs": wcs,
+        }
+
+    def read_cell(self, index: tuple[int, int]) -> CellCoadd:
+        key = self._check_index(index)
+        identity = self._identity(key)
+        meta = self.metadata
+        inputs = self._inputs.get(key, [])
+        row = self._rows.get(key)
+        if row is None:  # an empty cell, absent from the grid
+            with reading_errors(self.path, f"{self._name(self._named(EXT_CELLS))} cell {key}"):
+                return CellCoadd.empty(
+                    **identity,
+                    n_noise=meta.n_noise,
+                    psf_size=meta.psf_size,
+                    inputs=inputs,
+                    mask_bits=meta.mask_bits,
+                )
+        hdu = self._hdu(1)
+        where = f"{self._name(1)} row {row} (cell {key})"
+        with reading_errors(self.path, where):
+            data = hdu.read(rows=[row])[0]
+            shapes = expected_shapes(meta, identity["outer_bbox"])
+            if shapes["image"] != (meta.cell_outer, meta.cell_outer):
+                raise ValueError(f"the cell's outer box is {shapes['image']}")
+            mfrac = (
+                _native(data["maskfrac"])
+                if "maskfrac" in self._columns
+                else np.zeros(shapes["mfrac"], dtype=np.float32)
+            )
+            noise = [_native(data[f"noise_{n:02}"]) for n in range(meta.n_noise)]
+            mask = _native(data["mask"])
+            unknown = meta.mask_bits.unknown_bits(mask)
+            if unknown:
+                raise ValueError(f"mask has bits {unknown:#x} that MASKDEF does not name")
+            return CellCoadd(
+                image=_native(data["image"]),
+                mask=mask,
+                variance=_native(data["variance"]),
+                noise=np.stack(noise) if noise else np.zeros(shapes["noise"], np.float32),
+                mfrac=mfrac,
+                psf=_native(data["psf"]),
+                inputs=inputs,
+                **identity,
+            )
+
+    def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:
+        return list(self._inputs.get(self._check_index(index), []))
+
+    def close(self) -> None:
+        fits = getattr(self, "_fits", None)
+        if fits is not None:
+            fits.close()
+            self._fits = None
+        raw = getattr(self, "_raw", None)
+        if raw is not None:
+            raw.close()
+            self._raw = None
