@@ -2,8 +2,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTHON ?= python3
 DEMO_OUT ?= demo-output
+# lsst-images (the `lsst` extra) needs Python >= 3.12: its tests run in a second venv
+LSST_VENV ?= .venv-lsst
+LSST_PY := $(LSST_VENV)/bin/python
 
-.PHONY: demo test bench lint schemas clean
+.PHONY: demo test test-lsst bench lint schemas clean
 
 $(VENV)/.installed-base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -18,10 +21,26 @@ $(VENV)/.installed-test: pyproject.toml
 	touch $@ $(VENV)/.installed-base
 
 demo: $(VENV)/.installed-base
-	$(VENV)/bin/cellcoadd demo --out $(DEMO_OUT)
+	$(VENV)/bin/cellcoadd demo --out $(DEMO_OUT) --overwrite
 
 test: $(VENV)/.installed-test
 	$(PY) -m pytest
+	@$(MAKE) --no-print-directory test-lsst
+
+# tests/test_lsst_images.py in $(LSST_VENV), made with the newest pyenv 3.12 (else a plain
+# python3.12 on PATH); without any Python 3.12 it is skipped, unless CI is set (then fails)
+test-lsst:
+	@py=$$(pyenv versions --bare 2>/dev/null | grep -E '^3\.12(\.[0-9]+)?$$' | tail -1); \
+	if [ -n "$$py" ]; then python="env PYENV_VERSION=$$py python3.12"; \
+	elif python3.12 -c pass >/dev/null 2>&1; then python=python3.12; \
+	elif [ -n "$$CI" ]; then echo "test-lsst: no Python 3.12 found (pyenv or PATH); CI must run the lsst-images tests"; exit 1; \
+	else echo "test-lsst: skipped, no Python 3.12 found (pyenv or PATH) for lsst-images"; exit 0; fi; \
+	set -e; \
+	test -x $(LSST_PY) || $$python -m venv $(LSST_VENV); \
+	if [ ! -f $(LSST_VENV)/.installed ] || [ pyproject.toml -nt $(LSST_VENV)/.installed ]; then \
+		$(LSST_PY) -m pip install -q -e ".[lsst]" "pytest>=7.4"; touch $(LSST_VENV)/.installed; \
+	fi; \
+	$(LSST_PY) -m pytest tests/test_lsst_images.py
 
 bench: $(VENV)/.installed-test
 	for script in benchmarks/bench_*.py; do $(PY) $$script || exit 1; done
@@ -35,4 +54,4 @@ schemas: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd schemas --out schemas/
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .mypy_cache
+	rm -rf $(VENV) $(LSST_VENV) $(DEMO_OUT) .pytest_cache .mypy_cache

@@ -60,6 +60,8 @@ _EXPORTS: dict[str, str] = {
     "ExposureFile": "cellcoadd.io",
     "MefExposureFile": "cellcoadd.io",
     "MefLayout": "cellcoadd.io",
+    "to_lsst_images": "cellcoadd.io.lsst_images",
+    "from_lsst_images": "cellcoadd.io.lsst_images",
     "ExposureSource": "cellcoadd.model.sources",
     "build_cell": "cellcoadd.builder",
     "build_patch": "cellcoadd.builder",
@@ -111,6 +113,7 @@ __all__ = [
     "build_patch",
     "convert",
     "flag_unique",
+    "from_lsst_images",
     "measure_metacal",
     "open",
     "plot_patch_layout",
@@ -120,6 +123,7 @@ __all__ = [
     "read_exposure",
     "read_lsst_exposure",
     "read_mef_exposure",
+    "to_lsst_images",
     "to_ngmix",
     "to_observation",
     "trim_to_cell",
@@ -171,6 +175,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         write,
         write_exposure,
     )
+    from cellcoadd.io.lsst_images import from_lsst_images, to_lsst_images
     from cellcoadd.model.build_config import BuildConfig
     from cellcoadd.model.cell_coadd import CellCoadd
     from cellcoadd.model.exposure import Exposure
