@@ -34,8 +34,10 @@ def test_demo_command_writes_everything(tmp_path):
         "cell.png",
         "inputs.png",
     } <= names
-    assert sum("-det" in name for name in names) == 3 * 9  # 3 visits x 9 CCDs
+    # the bulky exposures stay in memory unless --keep-exposures
+    assert not any("-det" in name for name in names) and "exposures" not in names
     assert all(p.is_file() for p in out.iterdir())  # nothing in sub-folders
+    assert "--keep-exposures writes them" in result.output
     for png in ("layout.png", "stitched.png", "cell.png", "inputs.png"):
         assert (out / png).read_bytes()[:8] == PNG
     assert "each kept by exactly one cell" in result.output

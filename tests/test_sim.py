@@ -286,8 +286,14 @@ def test_field_covers_the_patch_and_ccd_edges_cross_cells(field_run):
 def test_field_exposures_are_well_formed(field_run):
     bits = field_run.exposures[0].mask_bits
     for exposure in field_run.exposures:
-        assert exposure.image.dtype == np.float32 and exposure.shape == (400, 400)
-        assert exposure.valid_box.x_start == 2 and exposure.valid_box.x_stop == 398
+        assert exposure.image.dtype == np.float32 and exposure.shape == (
+            FieldConfig().ccd_ny,
+            FieldConfig().ccd_nx,
+        )
+        assert (
+            exposure.valid_box.x_start == 2
+            and exposure.valid_box.x_stop == FieldConfig().ccd_nx - 2
+        )
         assert np.all(exposure.mask[0, :] & bits.value("EDGE"))
         assert np.isfinite(exposure.image).all()
     masked = sum(

@@ -75,7 +75,7 @@ def skymap(
         click.echo(f"wrote {layout}")
 
 
-@click.command()
+@click.command(context_settings={"ignore_unknown_options": True})
 @click.argument("ra", type=float)
 @click.argument("dec", type=float)
 @skymap_option
@@ -83,16 +83,21 @@ def skymap(
 def locate(ra: float, dec: float, skymap_path: str | None, as_json: bool) -> None:
     """Print the tract, patch and cell whose inner regions hold RA DEC (deg).
 
+    Negative coordinates need no `--`: `cellcoadd locate 10.0 -30.0` works.
+
     \b
     Examples:
-      cellcoadd locate 150.1 2.2
-      cellcoadd locate 10.0 -30.0 --skymap skymap.json --json
+      cellcoadd locate 10.0 -30.0
+      cellcoadd locate 150.3 2.0 --skymap skymap.json --json
     """
     if not (-90.0 <= dec <= 90.0 and np.isfinite(ra)):
         raise click.BadParameter(f"({ra}, {dec}) is not a sky position in deg")
     the_map = load_skymap(skymap_path)
     where = the_map.locate(np.array([ra]), np.array([dec]))[0]
     result = {name: where[name].item() for name in where.dtype.names}
+    for name, value in result.items():  # outside every tract: no pixel position
+        if isinstance(value, float) and not np.isfinite(value):
+            result[name] = None
     if as_json:
         click.echo(json.dumps(result))
     elif result["tract"] < 0:

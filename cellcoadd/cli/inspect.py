@@ -35,18 +35,41 @@ def show(path: str, cell_text: str, out: str | None, noise_index: int) -> None:
                 f"{max(stored.cell_indices)}"
             )
         cell = stored.read_cell(index)
-        mask_bits = stored.metadata.mask_bits
+        meta = stored.metadata
     if not 0 <= noise_index < max(cell.n_noise, 1):
         raise click.BadParameter(f"the cell has {cell.n_noise} noise realizations")
     out = out or f"cell_{index[0]}_{index[1]}.png"
-    plot_cell_planes(cell, out, mask_bits=mask_bits, noise_index=noise_index)
-    for record in cell.inputs:
-        click.echo(
-            f"visit {record.visit:5d} det {record.detector:3d}  {record.status:15s} "
-            f"weight {record.weight:10.4g}  overlap {record.overlap_fraction:5.2f}  "
-            f'PSF FWHM {record.psf_fwhm:5.3f}"'
-        )
+    plot_cell_planes(
+        cell,
+        out,
+        mask_bits=meta.mask_bits,
+        noise_index=noise_index,
+        units=meta.units,
+        zero_point=meta.zero_point,
+    )
+    for line in input_lines(cell):
+        click.echo(line)
     click.echo(f"wrote {out}")
+
+
+def _number(value: float, spec: str, width: int, suffix: str = "") -> str:
+    """``value`` formatted, or "-" (right-aligned in ``width``) when it does not exist."""
+    text = f"{value:{spec}}{suffix}" if np.isfinite(value) else "-"
+    return f"{text:>{width}}"
+
+
+def input_lines(cell) -> list[str]:
+    """One line per input record of ``cell``; values a rejected input lacks show as "-"."""
+    lines = []
+    for record in cell.inputs:
+        weight = record.weight if record.weight > 0 else float("nan")  # 0: not weighed
+        lines.append(
+            f"visit {record.visit:5d} det {record.detector:3d}  {record.status:15s} "
+            f"weight {_number(weight, '.4g', 10)}  "
+            f"overlap {_number(record.overlap_fraction, '.2f', 5)}  "
+            f"PSF FWHM {_number(record.psf_fwhm, '.3f', 6, chr(34))}"
+        )
+    return lines
 
 
 @click.command()

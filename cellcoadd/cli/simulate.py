@@ -55,6 +55,14 @@ SIP_K = 1e-9
 @click.option("--tract", "tract_id", type=int, default=0, show_default=True, help="field mode")
 @click.option("--patch", "patch_text", help="field mode: PX,PY (default: the demo patch 1,1).")
 @click.option(
+    "--ccd-pixels",
+    type=click.IntRange(min=32),
+    default=FieldConfig().ccd_nx,
+    show_default=True,
+    help="field mode: CCD side, pixels (3 x 3 CCDs per visit). Cells lose the visits whose "
+    "CCD edges cross them: much smaller CCDs leave cells empty.",
+)
+@click.option(
     "--dither", type=click.Choice(["random", "spiral", "none"]), default="random", show_default=True
 )
 @click.option("--rotate", is_flag=True, help="field mode: random focal-plane rotation per visit.")
@@ -73,6 +81,7 @@ def simulate(
     skymap_path: str | None,
     tract_id: int,
     patch_text: str | None,
+    ccd_pixels: int,
     dither: str,
     rotate: bool,
     sip: bool,
@@ -89,12 +98,14 @@ def simulate(
     \b
     Examples:
       cellcoadd simulate --mode field --out sim-field
-      cellcoadd simulate --mode field --out sim-field --visits 20 --dither spiral --rotate --sip
+      cellcoadd simulate --mode field --out sim-spiral --visits 20 --dither spiral --rotate --sip
       cellcoadd simulate --mode stamps --out sim-plus --objects 200 --seed 7
       cellcoadd simulate --mode stamps --out sim-minus --objects 200 --seed 7 --shear -0.02,0
     """
     shear = parse_pair(shear_text, float)
     field = FieldConfig(
+        ccd_nx=ccd_pixels,
+        ccd_ny=ccd_pixels,
         dither=dither,
         rotate=rotate,
         sip_k=SIP_K if sip else 0.0,

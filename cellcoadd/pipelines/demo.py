@@ -2,14 +2,18 @@
 
 Simulate a small field, build its cell coadds, store them in FITS and HDF5, read a cell
 back lazily, trim the truth catalog to unique cell areas, measure shear with
-metacalibration on isolated galaxies, print a report and draw the figures. Every file
-goes directly into the output folder.
+metacalibration on isolated galaxies, print a report and draw the figures. What a user
+looks at (coadds, catalogs, report, figures, sky map) goes directly into the output
+folder; the simulated exposure files (about 4 MB each, 90 for 10 visits) are written
+only when asked, into its ``exposures/`` sub-folder. The builder's numba kernels are
+compiled (once, cached on disk) before the build, with a message, so the progress bar
+of the build measures the build.
 """
 
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +28,9 @@ from cellcoadd.io import api as coadd_io
 from cellcoadd.io.atomic import atomic_write, atomic_write_text
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
+from cellcoadd.pipelines.coverage import count_inputs, coverage_warning
 from cellcoadd.pipelines.simulation_files import write_field_simulation
+from cellcoadd.pipelines.warmup import kernels_cached, warm_up_kernels
 from cellcoadd.shear import (
     PAPER_CUTS,
     mean_shear,
@@ -34,7 +40,7 @@ from cellcoadd.shear import (
 )
 from cellcoadd.sim import DEMO_PATCH, FieldConfig, SimConfig, demo_skymap, simulate_field
 
-DEMO_CCD_PIXELS = 700  # CCDs of 3.15 arcmin: edges cross some cells, most cells keep most visits
+DEMO_CCD_PIXELS = FieldConfig().ccd_nx  # edges cross some cells, most cells keep most visits
 
 
 @dataclass
@@ -58,22 +64,6 @@ class _Clock:
         now = time.perf_counter()
         self.steps[name] = now - self._start
         self._start = now
-
-
-def _visit_status_counts(coadd: PatchCoadd) -> Counter:
-    """(cell, visit) pairs by outcome: used if any detector was used, else the reason."""
-    counts: Counter = Counter()
-    for cell in coadd.cells.values():
-        by_visit: dict[int, set[str]] = {}
-        for record in cell.inputs:
-            by_visit.setdefault(record.visit, set()).add(record.status)
-        for statuses in by_visit.values():
-            reasons = statuses - {"no_overlap"}
-            if "used" in statuses:
-                counts["used"] += 1
-            else:  # the most informative reason among the visit's detectors
-                counts[min(reasons) if reasons else "no_overlap"] += 1
-    return counts
 
 
 def _coadd_psf_fwhm(coadd: PatchCoadd) -> np.ndarray:
@@ -141,18 +131,14 @@ def _measure_shear(coadd: PatchCoadd, truth: Table, skymap) -> dict[str, float] 
     return {"n": len(results), "g1": g[0], "g1_err": g_err[0], "g2": g[1], "g2_err": g_err[1]}
 
 
-def _report(numbers: dict, statuses: Counter, fwhm: np.ndarray, clock: _Clock, files) -> str:
-    pairs = sum(statuses.values())
-    rejected = ", ".join(
-        f"{reason} {count}" for reason, count in sorted(statuses.items()) if reason != "used"
-    )
+def _report(numbers: dict, coadd: PatchCoadd, fwhm: np.ndarray, clock: _Clock, files) -> str:
+    counts = count_inputs(coadd)
     lines = [
         "cellcoadd demo report",
         "=====================",
         f"cells built: {numbers['cells']} ({numbers['inner_cells']} inner, "
         f"{numbers['cells'] - numbers['inner_cells']} border), {numbers['empty_cells']} empty",
-        f"(cell, visit) pairs: {pairs}: used {statuses['used']} "
-        f"({100 * statuses['used'] / max(pairs, 1):.0f}%), rejected: {rejected or 'none'}",
+        *counts.summary_lines(),
         f'coadd PSF FWHM per cell: median {np.median(fwhm):.3f}", '
         f'range {fwhm.min():.3f}-{fwhm.max():.3f}"'
         if fwhm.size
@@ -180,6 +166,18 @@ def _report(numbers: dict, statuses: Counter, fwhm: np.ndarray, clock: _Clock, f
             if role.startswith("coadd")
         )
     )
+    if "exposures" in files:
+        lines.append(
+            f"exposures: {numbers['n_exposures']} files in {files['exposures']}/ "
+            f"({numbers['exposure_bytes'] / 1e6:.0f} MB); rebuild them with `cellcoadd build "
+            f"{files['exposures']}/visit*.fits --skymap {files['skymap']} --tract 0 "
+            f"--patch {DEMO_PATCH[0]},{DEMO_PATCH[1]} --out patch.h5`"
+        )
+    else:
+        lines.append(
+            f"exposures: {numbers['n_exposures']} simulated in memory, not written "
+            "(--keep-exposures writes them)"
+        )
     lines.append("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in clock.steps.items()))
     lines.append("figures: " + ", ".join(p.name for r, p in files.items() if p.suffix == ".png"))
     return "\n".join(lines)
@@ -193,6 +191,8 @@ def run_demo(
     workers: int = 1,
     progress: bool = True,
     ccd_pixels: int = DEMO_CCD_PIXELS,
+    keep_exposures: bool = False,
+    log: Callable[[str], None] | None = None,
 ) -> DemoResult:
     """Run the demonstration and write everything into ``out_dir``.
 
@@ -210,21 +210,51 @@ def run_demo(
         Show progress bars.
     ccd_pixels : int
         CCD side in (0.27 arcsec) pixels.
+    keep_exposures : bool
+        Also write the simulated exposure files, into ``out_dir/exposures/``.
+    log : callable, optional
+        Receives one line per step (what is being done); default: silent.
     """
+    say = log or (lambda line: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result = DemoResult(out_dir=out)
     clock = _Clock()
     skymap = demo_skymap()
     config = SimConfig(field=FieldConfig(ccd_nx=ccd_pixels, ccd_ny=ccd_pixels))
+    field_config = config.field
+    say(
+        f"simulating {n_visits} visits of {field_config.n_ccd_x} x {field_config.n_ccd_y} "
+        f"CCDs of {ccd_pixels} x {ccd_pixels} pixels"
+    )
     sim = simulate_field(config, skymap, 0, DEMO_PATCH, n_visits, seed, progress=progress)
-    write_field_simulation(sim, out, overwrite=True)
+    written = write_field_simulation(sim, out, overwrite=True, exposures=False)
+    result.files["skymap"] = written[0]
+    if keep_exposures:
+        folder = out / "exposures"
+        paths = write_field_simulation(sim, folder, overwrite=True)[: len(sim.exposures)]
+        result.files["exposures"] = folder
+        exposure_bytes = sum(path.stat().st_size for path in paths)
     clock.lap("simulate")
+    build_config = BuildConfig()
+    if kernels_cached():
+        warm_up_kernels(build_config)  # loads numba's disk cache: about a second
+    else:
+        say(
+            "compiling the builder's numba kernels: first run only, about 10-40 s; "
+            "they are cached on disk for later runs"
+        )
+        say(f"compiled in {warm_up_kernels(build_config):.0f} s")
+    clock.lap("kernels")
     patch = skymap[0].patch(*DEMO_PATCH)
+    say(f"building the {len(patch.cells)} cells of patch {DEMO_PATCH} with {workers} worker(s)")
     coadd = build_patch(
-        patch, sim.exposures, BuildConfig(), seed, progress=progress, workers=workers
+        patch, sim.exposures, build_config, seed, progress=progress, workers=workers
     )
     clock.lap("build")
+    warning = coverage_warning(coadd)
+    if warning:
+        say(warning)
     for role, name in (("coadd_fits", "coadd.fits"), ("coadd_hdf5", "coadd.h5")):
         result.files[role] = coadd_io.write(coadd, out / name, overwrite=True)
     clock.lap("write")
@@ -244,13 +274,20 @@ def run_demo(
     clock.lap("trim")
     shear = _measure_shear(coadd, truth, skymap)
     clock.lap("shear")
+    say("drawing the figures")
     # matplotlib is imported only here, when the figures are drawn
     from cellcoadd.plots import plot_cell_planes, plot_inputs_map, plot_patch_layout, plot_stitched
 
     result.files["layout"] = Path(plot_patch_layout(patch, out / "layout.png"))
     result.files["stitched"] = Path(plot_stitched(coadd, out / "stitched.png"))
     result.files["cell"] = Path(
-        plot_cell_planes(coadd.cells[check], out / "cell.png", mask_bits=coadd.metadata.mask_bits)
+        plot_cell_planes(
+            coadd.cells[check],
+            out / "cell.png",
+            mask_bits=coadd.metadata.mask_bits,
+            units=coadd.metadata.units,
+            zero_point=coadd.metadata.zero_point,
+        )
     )
     result.files["inputs"] = Path(plot_inputs_map(coadd, out / "inputs.png"))
     clock.lap("plots")
@@ -263,12 +300,18 @@ def run_demo(
         "noise_predicted": float(np.sqrt(np.median(inner.variance))),
         "check_cell": check,
         "objects_in_patch": n_in_patch,
+        "n_exposures": len(sim.exposures),
     }
+    if keep_exposures:
+        numbers["exposure_bytes"] = exposure_bytes
     if shear:
         numbers.update({"shear_n": shear["n"], **{k: v for k, v in shear.items() if k != "n"}})
-    statuses = _visit_status_counts(coadd)
-    numbers.update({f"pairs_{k}": v for k, v in statuses.items()})
-    result.report = _report(numbers, statuses, _coadd_psf_fwhm(coadd), clock, result.files)
+    counts = count_inputs(coadd)
+    numbers.update({f"records_{k}": v for k, v in counts.records.items()})
+    numbers.update({f"visits_{k}": v for k, v in counts.visits.items()})
+    result.report = _report(numbers, coadd, _coadd_psf_fwhm(coadd), clock, result.files)
+    if warning:
+        result.report += "\n" + warning
     result.numbers = numbers
     result.files["report"] = atomic_write_text(
         out / "report.txt", result.report + "\n", overwrite=True

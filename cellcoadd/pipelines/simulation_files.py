@@ -21,7 +21,11 @@ from cellcoadd.sim.stamps import StampObject, stamps_truth_tables
 
 
 def write_field_simulation(
-    simulation: FieldSimulation, directory: str | os.PathLike[str], *, overwrite: bool = False
+    simulation: FieldSimulation,
+    directory: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    exposures: bool = True,
 ) -> list[Path]:
     """Write a field simulation's exposures and description into ``directory``.
 
@@ -37,6 +41,9 @@ def write_field_simulation(
         Output folder, created if missing.
     overwrite : bool
         Replace existing files.
+    exposures : bool
+        Write the exposure files (the bulk of the output); False writes only the four
+        small description files.
 
     Returns
     -------
@@ -46,7 +53,7 @@ def write_field_simulation(
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for exposure in simulation.exposures:
+    for exposure in simulation.exposures if exposures else []:
         name = f"visit{exposure.visit:04d}-det{exposure.detector:02d}.fits"
         paths.append(write_exposure(exposure, out / name, overwrite=overwrite))
     for name, text in (

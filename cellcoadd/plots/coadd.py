@@ -1,4 +1,9 @@
-"""Figures of coadds: the stitched patch, one cell's planes, the inputs used per cell."""
+"""Figures of coadds: the stitched patch, one cell's planes, the inputs used per cell.
+
+Image panels have sky axes (RA, Dec through astropy's WCSAxes) from the cells' WCS,
+colourbars labelled with the coadd's pixel units (from its metadata), and the mask is
+drawn one colour per bit with a legend.
+"""
 
 from __future__ import annotations
 
@@ -7,13 +12,47 @@ from collections import Counter
 
 import numpy as np
 from matplotlib import colormaps
-from matplotlib.colors import AsinhNorm
+from matplotlib.colors import AsinhNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch as LegendPatch
 from matplotlib.patches import Rectangle
 
+from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import PatchCoadd
+
+#: colours of the first mask bits present (a pixel shows its first bit present)
+_BIT_COLOURS: list[str] = [f"C{i}" for i in range(10)]
+
+
+def unit_label(units: str | None, zero_point: float | None = None) -> str:
+    """Colourbar label of the image plane from the metadata's ``units``.
+
+    ``"count"`` -> ``"counts / pixel (zero point 30)"``, ``"nJy"`` -> ``"nJy / pixel"``;
+    other (older, free-text) units are shown as they are.
+    """
+    if not units:
+        return "pixel value"
+    if units in ("count", "counts", "ct"):
+        suffix = f" (AB zero point {zero_point:g})" if zero_point is not None else ""
+        return f"counts / pixel{suffix}"
+    if " " in units:  # free text of older files, already a description
+        return units
+    return f"{units} / pixel"
+
+
+def _sky_axes(ax, *, ra: bool = True, dec: bool = True) -> None:
+    """Label the RA/Dec axes of a WCSAxes panel (or hide their labels)."""
+    lon, lat = ax.coords[0], ax.coords[1]
+    lon.set_axislabel("RA (ICRS)" if ra else "")
+    lat.set_axislabel("Dec (ICRS)" if dec else "")
+    lon.set_ticklabel(exclude_overlapping=True)
+    lat.set_ticklabel(exclude_overlapping=True)
+    lon.set_ticks(number=3)
+    lat.set_ticks(number=4)
+    if not dec:
+        lat.set_ticklabel_visible(False)
 
 
 def _stretch(values: np.ndarray) -> AsinhNorm:
@@ -28,6 +67,33 @@ def _stretch(values: np.ndarray) -> AsinhNorm:
     )
 
 
+def _sparse_ticks(norm: Normalize) -> list[float]:
+    """A few round colourbar ticks that do not overlap on an asinh (or linear) bar."""
+    vmin, vmax = float(norm.vmin or 0.0), float(norm.vmax or 0.0)
+    span = max(abs(vmin), abs(vmax), 1e-30)
+    candidates = {0.0}
+    for power in range(int(np.floor(np.log10(span))) - 3, int(np.floor(np.log10(span))) + 1):
+        for mantissa in (1, 2, 5):
+            candidates.update({mantissa * 10.0**power, -mantissa * 10.0**power})
+    inside = sorted(c for c in candidates if vmin <= c <= vmax)
+    ticks: list[float] = []
+    for value in sorted(inside, key=lambda v: (v != 0.0, -abs(v))):  # 0, then large first
+        position = float(norm(value))
+        if all(abs(position - float(norm(t))) > 0.1 for t in ticks):
+            ticks.append(value)
+    return sorted(ticks)
+
+
+def _colourbar(fig, shown, ax, label: str, norm: Normalize | None = None):
+    bar = fig.colorbar(shown, ax=ax, shrink=0.85, pad=0.02)
+    bar.set_label(label)
+    if isinstance(norm, AsinhNorm):
+        bar.set_ticks(_sparse_ticks(norm))
+        bar.ax.yaxis.set_major_formatter("{x:g}")
+        bar.ax.minorticks_off()
+    return bar
+
+
 def _image_axes(ax, values: np.ndarray, title: str, norm=None, cmap: str = "gray_r", extent=None):
     cmap_obj = colormaps[cmap].with_extremes(bad="tab:orange")
     shown = ax.imshow(values, origin="lower", norm=norm, cmap=cmap_obj, extent=extent)
@@ -35,31 +101,59 @@ def _image_axes(ax, values: np.ndarray, title: str, norm=None, cmap: str = "gray
     return shown
 
 
-def plot_stitched(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
-    """The patch inner region stitched from cell inner regions, with the cell grid.
+def _stitched_wcs(patch: PatchCoadd):
+    """WCS of the stitched array (array pixel (0, 0) is the patch inner box's corner)."""
+    box = patch.patch_inner_bbox
+    for cell in patch.cells.values():
+        outer = cell.outer_bbox
+        return shifted_wcs(cell.wcs, box.x_start - outer.x_start, box.y_start - outer.y_start)
+    return None
 
-    Empty cells (no input covered them) show in orange. Axes are tract pixels.
+
+def plot_stitched(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
+    """The patch inner region stitched from cell inner regions, on RA/Dec axes, with the
+    cell grid. Empty cells (no input covered them) show in orange.
     """
     image = patch.stitch("image")
     box = patch.patch_inner_bbox
-    extent = (box.x_start - 0.5, box.x_stop - 0.5, box.y_start - 0.5, box.y_stop - 0.5)
-    fig = Figure(figsize=(7.5, 7), layout="constrained")
-    ax = fig.subplots()
-    shown = _image_axes(ax, image, "", _stretch(image), extent=extent)
-    side = patch.metadata.cell_inner
-    for edge in range(box.x_start, box.x_stop + 1, side):
-        ax.axvline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
-    for edge in range(box.y_start, box.y_stop + 1, side):
-        ax.axhline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
     meta = patch.metadata
+    wcs = _stitched_wcs(patch)
+    fig = Figure(figsize=(8, 7), layout="constrained")
+    ax = fig.add_subplot(projection=wcs) if wcs is not None else fig.add_subplot()
+    norm = _stretch(image)
+    shown = _image_axes(ax, image, "", norm)
+    side = meta.cell_inner
+    for edge in range(0, box.nx + 1, side):
+        ax.axvline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
+    for edge in range(0, box.ny + 1, side):
+        ax.axhline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
+    ax.set_xlim(-0.5, box.nx - 0.5)
+    ax.set_ylim(-0.5, box.ny - 0.5)
+    scale = meta.skymap_config.pixel_scale
     ax.set_title(
-        f"tract {meta.tract} patch {meta.patch} band {meta.band}: stitched cell inner regions"
+        f"tract {meta.tract} patch {meta.patch} band {meta.band}: stitched cell inner regions\n"
+        f'(cyan: cells of {side} px = {side * scale:g}"; tract pixels x {box.x_start}-'
+        f"{box.x_stop - 1}, y {box.y_start}-{box.y_stop - 1}; orange: no data)",
+        fontsize="medium",
+        pad=14,
     )
-    ax.set_xlabel("tract x [pixels]")
-    ax.set_ylabel("tract y [pixels]")
-    fig.colorbar(shown, ax=ax, shrink=0.8, label=meta.units)
+    if wcs is not None:
+        _sky_axes(ax)
+    else:
+        ax.set_xlabel("x [pixels]")
+        ax.set_ylabel("y [pixels]")
+    _colourbar(fig, shown, ax, unit_label(meta.units, getattr(meta, "zero_point", None)), norm)
     fig.savefig(path, dpi=90)
     return os.fspath(path)
+
+
+def _mask_categories(mask: np.ndarray, bits: MaskBits) -> tuple[np.ndarray, list[str]]:
+    """Per pixel, 1 + the index of its first set bit among the bits present (0: none)."""
+    present = [name for name in bits.bits if (mask & bits.value(name)).any()]
+    categories = np.zeros(mask.shape, dtype=int)
+    for number, name in reversed(list(enumerate(present, 1))):
+        categories[(mask & bits.value(name)) != 0] = number
+    return categories, present
 
 
 def plot_cell_planes(
@@ -68,31 +162,78 @@ def plot_cell_planes(
     *,
     mask_bits: MaskBits | None = None,
     noise_index: int = 0,
+    units: str | None = None,
+    zero_point: float | None = None,
 ) -> str:
     """One cell: image, a noise realization, PSF (log), mask bits and masked fraction.
 
-    The inner region is outlined on the image panels.
+    Image panels are on RA/Dec axes (the cell's WCS), the PSF on pixel offsets from its
+    centre; every panel has a colourbar with units (``units``, ``zero_point``: the
+    coadd metadata's), the mask a legend of its bits. The inner region is outlined.
     """
-    fig = Figure(figsize=(16, 3.8), layout="constrained")
-    axes = fig.subplots(1, 5)
+    fig = Figure(figsize=(22, 5.2), layout="constrained")
+    label = unit_label(units, zero_point)
     if cell.is_empty:
-        for ax in axes:
-            ax.text(0.5, 0.5, "empty cell", ha="center", va="center", transform=ax.transAxes)
-            ax.set_axis_off()
+        ax = fig.add_subplot()
+        ax.text(0.5, 0.5, "empty cell: no input covers it", ha="center", va="center")
+        ax.set_axis_off()
     else:
+        axes = [
+            fig.add_subplot(1, 5, i + 1, projection=None if i == 2 else cell.wcs) for i in range(5)
+        ]
         norm = _stretch(cell.image)
-        _image_axes(axes[0], cell.image, "image", norm)
+        shown = _image_axes(axes[0], cell.image, "image", norm)
+        _colourbar(fig, shown, axes[0], label, norm)
         if cell.n_noise:
-            _image_axes(axes[1], cell.noise[noise_index], f"noise realization {noise_index}", norm)
+            shown = _image_axes(
+                axes[1], cell.noise[noise_index], f"noise realization {noise_index}", norm
+            )
+            _colourbar(fig, shown, axes[1], label, norm)
+        else:
+            axes[1].text(0.5, 0.5, "no noise realization", ha="center", transform=axes[1].transAxes)
         psf = np.clip(cell.psf, cell.psf.max() * 1e-5, None)
-        _image_axes(axes[2], np.log10(psf), "PSF (log10)", cmap="viridis")
-        bits = mask_bits or MaskBits()
-        present = [name for name in bits.bits if (cell.mask & bits.value(name)).any()]
-        _image_axes(axes[3], cell.mask, "mask: " + (", ".join(present) or "none"), cmap="tab20")
+        half = cell.psf.shape[0] // 2
+        shown = _image_axes(
+            axes[2],
+            np.log10(psf),
+            "PSF at the cell centre",
+            cmap="viridis",
+            extent=(-half - 0.5, half + 0.5, -half - 0.5, half + 0.5),
+        )
+        axes[2].set_xlabel("x offset [pixels]")
+        axes[2].set_ylabel("y offset [pixels]")
+        _colourbar(fig, shown, axes[2], "log10(PSF flux fraction / pixel)")
+        categories, present = _mask_categories(cell.mask, mask_bits or MaskBits())
+        colours: list[str] = ["white", *(_BIT_COLOURS[i % 10] for i in range(len(present)))]
+        axes[3].imshow(
+            categories,
+            origin="lower",
+            cmap=ListedColormap(colours),
+            vmin=-0.5,
+            vmax=len(present) + 0.5,
+            interpolation="nearest",
+        )
+        axes[3].set_title("mask bits", fontsize="medium")
+        handles = [
+            LegendPatch(facecolor=colours[i + 1], edgecolor="k", label=name)
+            for i, name in enumerate(present)
+        ] or [LegendPatch(facecolor="white", edgecolor="k", label="nothing masked")]
+        axes[3].legend(
+            handles=handles,
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.16),
+            ncols=min(3, len(handles)),
+            fontsize="small",
+            frameon=False,
+        )
         shown = _image_axes(axes[4], cell.mfrac, "masked fraction", cmap="magma")
-        fig.colorbar(shown, ax=axes[4], shrink=0.8)
+        shown.set_clim(0.0, max(float(np.nanmax(cell.mfrac)), 1e-3))
+        _colourbar(fig, shown, axes[4], "fraction of the pixel's weight masked")
         inner, outer = cell.inner_bbox, cell.outer_bbox
-        for ax in (axes[0], axes[1], axes[3], axes[4]):
+        for number, ax in enumerate(axes):
+            if number == 2:
+                continue
+            _sky_axes(ax, dec=number == 0)
             ax.add_patch(
                 Rectangle(
                     (inner.x_start - outer.x_start - 0.5, inner.y_start - outer.y_start - 0.5),
@@ -106,7 +247,7 @@ def plot_cell_planes(
     used = cell.n_used
     fig.suptitle(
         f"cell {cell.index} of tract {cell.tract}: {used} input(s) used, "
-        f"{len(cell.inputs) - used} rejected"
+        f"{len(cell.inputs) - used} rejected (cyan: inner region; orange: no data)"
     )
     fig.savefig(path, dpi=80)
     return os.fspath(path)
@@ -133,27 +274,43 @@ def plot_inputs_map(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
         )
         used[ys.index(cy), xs.index(cx)] = counts["used"]
         edge[ys.index(cy), xs.index(cx)] = counts["edge"]
+    top = max(float(np.nanmax(used + edge)), 1.0)
     fig = Figure(figsize=(11, 5), layout="constrained")
     axes = fig.subplots(1, 2)
     extent = (xs[0] - 0.5, xs[-1] + 0.5, ys[0] - 0.5, ys[-1] + 0.5)
     for ax, values, title, cmap in (
         (axes[0], used, "visits used per cell", "viridis"),
-        (axes[1], edge, "visits rejected (detector edge)", "magma"),
+        (axes[1], edge, "visits rejected (a CCD edge crosses the cell)", "magma"),
     ):
-        shown = ax.imshow(values, origin="lower", extent=extent, cmap=cmap)
+        norm = Normalize(0.0, top)
+        colormap = colormaps[cmap]
+        shown = ax.imshow(values, origin="lower", extent=extent, cmap=colormap, norm=norm)
         for (row, col), value in np.ndenumerate(values):
-            ax.text(xs[col], ys[row], f"{value:.0f}", ha="center", va="center", color="w")
+            red, green, blue, _ = colormap(norm(value))
+            luminance = 0.299 * red + 0.587 * green + 0.114 * blue
+            ax.text(
+                xs[col],
+                ys[row],
+                f"{value:.0f}",
+                ha="center",
+                va="center",
+                color="black" if luminance > 0.5 else "white",
+                fontsize="medium",
+                fontweight="bold",
+            )
         inner = patch.inner_cell_indices
         x0 = min(i[0] for i in inner) - 0.5
         y0 = min(i[1] for i in inner) - 0.5
         n = patch.metadata.skymap_config.cells_per_patch
         ax.add_patch(
-            Rectangle((x0, y0), n, n, fill=False, edgecolor="w", linestyle="--", linewidth=1.2)
+            Rectangle((x0, y0), n, n, fill=False, edgecolor="tab:cyan", linestyle="--", lw=2)
         )
         ax.set_title(title)
-        ax.set_xlabel("cell x index")
-        ax.set_ylabel("cell y index")
-        fig.colorbar(shown, ax=ax, shrink=0.8)
-    fig.suptitle("inputs per cell (dashed: patch inner cells)")
+        ax.set_xlabel("cell x index (tract)")
+        ax.set_ylabel("cell y index (tract)")
+        ax.set_xticks(xs)
+        ax.set_yticks(ys)
+        _colourbar(fig, shown, ax, "visits")
+    fig.suptitle("inputs per cell (dashed: the patch's inner cells)")
     fig.savefig(path, dpi=80)
     return os.fspath(path)

@@ -138,7 +138,10 @@ class FieldConfig(_Frozen):
     n_ccd_x, n_ccd_y : int
         CCDs along x and y of the focal plane.
     ccd_nx, ccd_ny : int
-        CCD size, pixels.
+        CCD size, pixels. The default, 700 (3.15 arcmin at 0.27 arcsec/pixel), is about
+        four cell outer boxes across: CCD edges and gaps cross some cells, which lose
+        those visits (edge-free selection), but most cells keep most visits. Much smaller
+        CCDs leave cells empty.
     ccd_gap : int
         Gap between neighbouring CCDs, pixels.
     edge_pixels : int
@@ -173,8 +176,8 @@ class FieldConfig(_Frozen):
 
     n_ccd_x: int = Field(3, ge=1, le=16)
     n_ccd_y: int = Field(3, ge=1, le=16)
-    ccd_nx: int = Field(400, ge=32)
-    ccd_ny: int = Field(400, ge=32)
+    ccd_nx: int = Field(700, ge=32)
+    ccd_ny: int = Field(700, ge=32)
     ccd_gap: int = Field(20, ge=0)
     edge_pixels: int = Field(2, ge=0)
     dither: Literal["random", "spiral", "none"] = "random"
