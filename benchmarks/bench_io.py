@@ -13,13 +13,23 @@ second. Reads come from the page cache (the file was just written), which isolat
 library's own cost from the disk. The target: ``read_cell`` at least 50 times faster than
 reading the whole patch.
 
-Run as ``.venv/bin/python benchmarks/bench_io.py [--repeats N] [--dir DIR]``.
+Before that table it compares writes with the disk: each uncompressed layout's patch write
+(``cellcoadd.io.write``: atomic, checksums, fsync) against ``dd`` writing the same number of
+bytes to the same directory with ``conv=fsync`` (a Python write + fsync when ``dd`` is
+missing), in interleaved rounds (dd, FITS, dd, HDF5, ...), medians, with the load average.
+The target: each write at least half as fast as ``dd`` in the same run.
+
+Run as ``.venv/bin/python benchmarks/bench_io.py [--repeats N] [--dir DIR]``;
+``--write-only`` runs the comparison with ``dd`` alone, ``--cells N`` takes the first N cells
+of the patch (e.g. 36 for the demo's 6 x 6).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -106,16 +116,81 @@ def pixel_megabytes(cell: CellCoadd) -> float:
     return sum(plane.nbytes for plane in planes) / 1e6
 
 
+def dd_write(path: Path, nbytes: int) -> None:
+    """Write ``nbytes`` zero bytes to ``path`` and flush them to disk (``dd conv=fsync``)."""
+    megabytes = -(-nbytes // 2**20)
+    if shutil.which("dd"):
+        subprocess.run(
+            ["dd", "if=/dev/zero", f"of={path}", "bs=1M", f"count={megabytes}", "conv=fsync"],
+            check=True,
+            capture_output=True,
+        )
+        return
+    block = bytes(2**20)
+    with open(path, "wb") as stream:
+        for _ in range(megabytes):
+            stream.write(block)
+        stream.flush()
+        os.fsync(stream.fileno())
+
+
+def write_vs_dd(patch: PatchCoadd, directory: Path, rounds: int) -> None:
+    """Print the write throughput of the uncompressed layouts next to ``dd``'s, same run."""
+    layouts = {"FITS": directory / "dd-patch.fits", "HDF5": directory / "dd-patch.h5"}
+    for path in layouts.values():  # warm-up, and the byte counts dd is given
+        cio.write(patch, path, overwrite=True)
+    sizes = {name: os.path.getsize(path) for name, path in layouts.items()}
+    scratch = directory / "dd.bin"
+    times: dict[str, list[float]] = {f"{kind} {name}": [] for name in layouts for kind in "wd"}
+    load_before = os.getloadavg()
+    for _ in range(rounds):
+        for name, path in layouts.items():
+            for kind in "dw":  # dd first, then the write, every round
+                target = scratch if kind == "d" else path
+                target.unlink(missing_ok=True)
+                os.sync()  # nothing of the previous step left for this one to flush
+                start = time.perf_counter()
+                if kind == "d":
+                    dd_write(scratch, sizes[name])
+                else:
+                    cio.write(patch, path)
+                times[f"{kind} {name}"].append(time.perf_counter() - start)
+    load_after = os.getloadavg()
+    rows = []
+    for name in layouts:
+        write_s = float(np.median(times[f"w {name}"]))
+        dd_s = float(np.median(times[f"d {name}"]))
+        megabytes = sizes[name] / 1e6
+        rows.append(
+            (name, megabytes, write_s, megabytes / write_s, dd_s, megabytes / dd_s, dd_s / write_s)
+        )
+        layouts[name].unlink(missing_ok=True)
+    scratch.unlink(missing_ok=True)
+    print(
+        f"writes against dd (same bytes, same directory, conv=fsync), {rounds} interleaved "
+        f"rounds, medians; load average {load_before[0]:.2f} before, {load_after[0]:.2f} after"
+    )
+    header = ["layout", "file MB", "write s", "write MB/s", "dd s", "dd MB/s", "write / dd"]
+    print(format_table(header, rows, ["s", ".0f", ".3f", ".0f", ".3f", ".0f", ".2f"]))
+    print("target: write / dd >= 0.50\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="whole-patch writes and reads")
     parser.add_argument("--cell-reads", type=int, default=25, help="read_cell calls per layout")
     parser.add_argument("--dir", default=None, help="where to write (default: a temp dir)")
     parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument("--dd-rounds", type=int, default=5, help="rounds of writes against dd")
+    parser.add_argument("--write-only", action="store_true", help="only the dd comparison")
+    parser.add_argument("--cells", type=int, default=None, help="keep the first N cells")
+    parser.add_argument("--patch", default=None, help="a patch file to write instead")
     args = parser.parse_args()
 
     start = time.perf_counter()
-    patch = synthetic_patch(args.seed)
+    patch = cio.read(args.patch) if args.patch else synthetic_patch(args.seed)
+    if args.cells is not None:
+        patch = PatchCoadd(patch.metadata, dict(list(patch.cells.items())[: args.cells]))
     made = time.perf_counter() - start
     indices = list(patch.cells)
     megabytes = sum(pixel_megabytes(cell) for cell in patch.cells.values())
@@ -127,6 +202,9 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     rows = []
     with tempfile.TemporaryDirectory(dir=args.dir) as directory:
+        write_vs_dd(patch, Path(directory), args.dd_rounds)
+        if args.write_only:
+            return
         for name, filename, compression in LAYOUTS:
             path = Path(directory) / filename
             write_s, _ = median_seconds(

@@ -140,7 +140,7 @@ def write(
 
     def write_file(temporary: Path) -> None:
         writer(patch_coadd, str(temporary), compress=compress)
-        if file_kind == "fits":
+        if layout is not None:  # our own writers leave complete checksums
             stabilise_fits_checksums(temporary)
 
     return atomic_write(

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from astropy.wcs import WCS
+
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchMetadata
@@ -15,14 +17,39 @@ from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
 
 
-def cell_record_json(cell: CellCoadd) -> str:
-    """ASCII JSON of a cell's identity: tract, index, boxes and exact WCS."""
+class WcsRecords:
+    """:func:`~cellcoadd.model.wcs_codec.wcs_to_record` of the WCSs met in one write.
+
+    Each WCS object is described once (a cell's WCS goes into the cell index and into its
+    image header), and header cards whose text was already parsed are not parsed again:
+    the cells of a patch have the same WCS cards but for ``CRPIX``, and astropy's parsing
+    of card values was most of the cost of describing a WCS.
+    """
+
+    def __init__(self) -> None:
+        self._records: dict[int, tuple[WCS, dict[str, Any]]] = {}  # the WCS kept: ids stay
+        self._card_values: dict[str, tuple[str, Any]] = {}
+
+    def __call__(self, wcs: WCS) -> dict[str, Any]:
+        known = self._records.get(id(wcs))
+        if known is not None and known[0] is wcs:
+            return known[1]
+        record = wcs_to_record(wcs, card_values=self._card_values)
+        self._records[id(wcs)] = (wcs, record)
+        return record
+
+
+def cell_record_json(cell: CellCoadd, wcs_records: WcsRecords | None = None) -> str:
+    """ASCII JSON of a cell's identity: tract, index, boxes and exact WCS.
+
+    ``wcs_records`` describes the WCS (once per distinct WCS of a write); None: directly.
+    """
     record = {
         "tract": cell.tract,
         "index": list(cell.index),
         "inner_bbox": cell.inner_bbox.model_dump(),
         "outer_bbox": cell.outer_bbox.model_dump(),
-        "wcs": wcs_to_record(cell.wcs),
+        "wcs": (wcs_records or wcs_to_record)(cell.wcs),
     }
     return json.dumps(record, ensure_ascii=True, separators=(",", ":"), allow_nan=False)
 

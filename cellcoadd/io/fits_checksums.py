@@ -15,7 +15,9 @@ own checksum pass, so the CRC adds no read.
 
 Writers add the card with the placeholder value 0 (:data:`DATACRC_PLACEHOLDER`), so the
 header has room for it, and :func:`stabilise_fits_checksums` fills in the real value in
-place once the file is complete, together with fixed comments on the checksum cards.
+place once the file is complete, together with fixed comments on the checksum cards. The
+direct writer of uncompressed coadds (:mod:`cellcoadd.io.fits_direct`) computes the same
+cards as it writes each HDU, with the same result.
 """
 
 from __future__ import annotations
@@ -69,8 +71,8 @@ def stabilise_fits_checksums(path: str | os.PathLike[str]) -> None:
             header = bytearray(mapped[start:stop])
             with memoryview(mapped) as view:
                 crc = zlib.crc32(view[stop : extent["data_end"]])
-            filled = _fill_datacrc(header, crc)
-            if _stable_checksum_header(header) or filled:
+            filled = fill_datacrc(header, crc)
+            if stable_checksum_header(header) or filled:
                 mapped[start:stop] = header
         mapped.flush()
 
@@ -105,12 +107,12 @@ def verify_hdu(stream: BinaryIO, offsets: dict[str, int]) -> None:
         chunk = stream.read(min(_CHUNK, stop - position))
         if not chunk or len(chunk) % 4:
             raise ValueError("the file ends inside a data unit")
-        datasum = _ones_complement_sum(chunk, datasum)
+        datasum = ones_complement_sum(chunk, datasum)
         crc = zlib.crc32(chunk, crc)
         position += len(chunk)
     if not datasum_text.strip(b"' ").isdigit() or int(datasum_text.strip(b"' ")) != datasum:
         raise ValueError("data checksum (DATASUM) mismatch: the data unit was changed")
-    if _ones_complement_sum(header, datasum) not in (0, 0xFFFFFFFF):
+    if ones_complement_sum(header, datasum) not in (0, 0xFFFFFFFF):
         raise ValueError("HDU checksum (CHECKSUM) mismatch: the header was changed")
     if crc_text is None:
         return
@@ -125,22 +127,22 @@ def verify_hdu(stream: BinaryIO, offsets: dict[str, int]) -> None:
 
 def _card_value(header: bytes, key: bytes) -> bytes | None:
     """The value field (columns 11-80 up to any comment) of the card ``key``, or None."""
-    card = _find_card(header, key)
+    card = find_card(header, key)
     if card < 0:
         return None
     return header[card + 10 : card + _CARD].split(b"/")[0].strip()
 
 
-def _fill_datacrc(header: bytearray, crc: int) -> bool:
+def fill_datacrc(header: bytearray, crc: int) -> bool:
     """Write ``crc`` into the DATACRC card of one header; False if it has none."""
-    card = _find_card(header, _DATACRC_KEY)
+    card = find_card(header, _DATACRC_KEY)
     if card < 0:
         return False
     header[card + _VALUE.start : card + _VALUE.stop] = f"{crc:20d}".encode("ascii")
     return True
 
 
-def _find_card(header: bytes | bytearray, key: bytes) -> int:
+def find_card(header: bytes | bytearray, key: bytes) -> int:
     """Offset of the card starting with ``key`` (name and ``=``), or -1."""
     offset = header.find(key)
     while offset >= 0 and offset % _CARD:
@@ -148,9 +150,9 @@ def _find_card(header: bytes | bytearray, key: bytes) -> int:
     return offset
 
 
-def _stable_checksum_header(header: bytearray) -> bool:
+def stable_checksum_header(header: bytearray) -> bool:
     """Rewrite the checksum cards of one header in place; False if it has none."""
-    cards = {key: _find_card(header, key) for key in _CHECKSUM_COMMENTS}
+    cards = {key: find_card(header, key) for key in _CHECKSUM_COMMENTS}
     if min(cards.values()) < 0:
         return False
     for key, offset in cards.items():
@@ -163,11 +165,11 @@ def _stable_checksum_header(header: bytearray) -> bool:
     datasum = int(datasum_card[11 : datasum_card.index(b"'", 11)].strip() or b"0")
     checksum_value = slice(cards[b"CHECKSUM="] + 11, cards[b"CHECKSUM="] + 27)
     header[checksum_value] = b"0" * 16
-    header[checksum_value] = _encode_checksum(_ones_complement_sum(bytes(header), datasum))
+    header[checksum_value] = encode_checksum(ones_complement_sum(bytes(header), datasum))
     return True
 
 
-def _ones_complement_sum(data: bytes, initial: int = 0) -> int:
+def ones_complement_sum(data: bytes, initial: int = 0) -> int:
     """32-bit ones' complement sum of big-endian words (FITS checksum convention)."""
     total = int(np.frombuffer(data, dtype=">u4").sum(dtype=np.uint64)) + initial
     while total >> 32:
@@ -175,7 +177,7 @@ def _ones_complement_sum(data: bytes, initial: int = 0) -> int:
     return total
 
 
-def _encode_checksum(total: int) -> bytes:
+def encode_checksum(total: int) -> bytes:
     """16-character ASCII encoding of the complement of ``total`` (FITS checksum standard)."""
     value = 0xFFFFFFFF - total
     encoded = [0] * 16

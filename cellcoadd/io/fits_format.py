@@ -18,23 +18,33 @@ are never compressed.
 
 from __future__ import annotations
 
-from typing import Any
+import zlib
+from typing import Any, BinaryIO
 
 import fitsio
 import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import format_version
+from cellcoadd.io import fits_direct, format_version
 from cellcoadd.io.cell_records import (
     PLANES,
+    WcsRecords,
     cell_record_json,
     check_cell_geometry,
     expected_shapes,
     parse_cell_record,
 )
 from cellcoadd.io.coadd_file import CoaddFile
-from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER, verify_hdu
+from cellcoadd.io.fits_checksums import (
+    DATACRC_PLACEHOLDER,
+    fill_datacrc,
+    find_card,
+    stabilise_fits_checksums,
+    stable_checksum_header,
+    verify_hdu,
+)
+from cellcoadd.io.fits_direct import UnsupportedCard, card
 from cellcoadd.io.fits_paths import cfitsio_path, check_fits_path
 from cellcoadd.io.format_version import (
     FILE_KIND,
@@ -69,13 +79,26 @@ def _cell_planes(n_noise: int) -> list[str]:
 
 
 def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
-    """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists).
+    """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists), complete with
+    its CHECKSUM, DATASUM and ``DATACRC`` cards.
 
-    The ``DATACRC`` cards hold a placeholder until
-    :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums` fills them in (as
-    :func:`cellcoadd.io.api.write` does); readers refuse the file before that.
+    Uncompressed cells are written directly (:mod:`cellcoadd.io.fits_direct`: the same
+    bytes CFITSIO would write, in one pass); tile-compressed ones, and anything the direct
+    writer does not reproduce exactly, through CFITSIO, followed by
+    :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`.
     """
     check_fits_path(path)
+    if not compress:
+        try:
+            _write_fits(patch, path, compress=False, direct=True)
+            return
+        except UnsupportedCard:
+            pass  # something only CFITSIO writes as CFITSIO does: the same file through it
+    _write_fits(patch, path, compress=compress, direct=False)
+    stabilise_fits_checksums(path)
+
+
+def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -> None:
     # looked up on the module at each write, so tests can stand in for it
     payload, version = format_version.metadata_payload(patch.metadata)
     indices = list(patch.cells)
@@ -84,6 +107,7 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     meta = patch.metadata
     # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
     unit_cards = meta.unit_cards()
+    wcs_records = WcsRecords()
     with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
         fits.write(
             None,
@@ -108,18 +132,55 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
             "METADATA",
             [{"name": "METASHA", "value": sha256_hex(payload), "comment": "SHA-256"}],
         )
-        fits.write(_index_table(patch, planes), extname="CELLINDEX", header=[DATACRC_PLACEHOLDER])
+        fits.write(
+            _index_table(patch, planes, wcs_records),
+            extname="CELLINDEX",
+            header=[DATACRC_PLACEHOLDER],
+        )
         fits[-1].write_checksum()
+        if not direct:
+            hdus: _CfitsioHdus | _DirectHdus = _CfitsioHdus(fits, compress)
+            for index in indices:
+                _write_cell(hdus, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
+            # Readers check the length against it instead of walking every header to the end.
+            size = fits[-1].get_offsets()["data_end"]
+            fits[0].write_key("FILESIZE", size, comment="bytes in this file")
+            fits[0].write_checksum()
+            return
+        head = [fits[number].get_offsets() for number in range(_FIRST_CELL_HDU)]
+    with open(path, "r+b") as stream:
+        stream.seek(head[-1]["data_end"])
+        writer = _DirectHdus(stream)
         for index in indices:
-            _write_cell(fits, patch.cells[index], compress=compress, plane_cards=unit_cards)
-        # Readers check the length against it instead of walking every header to the end.
-        size = fits[-1].get_offsets()["data_end"]
-        fits[0].write_key("FILESIZE", size, comment="bytes in this file")
-        fits[0].write_checksum()
+            _write_cell(writer, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
+        size = stream.tell()
+        stream.truncate(size)
+        _finish_head(stream, head, size)
 
 
-def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
-    records = [cell_record_json(cell) for cell in patch.cells.values()]
+def _finish_head(stream: BinaryIO, head: list[dict[str, int]], size: int) -> None:
+    """Fill in ``FILESIZE`` and the ``DATACRC`` of the HDUs CFITSIO wrote, stabilise their
+    checksum cards (as :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`)."""
+    for number, extent in enumerate(head):
+        start, data_start, end = extent["header_start"], extent["data_start"], extent["data_end"]
+        stream.seek(start)
+        header = bytearray(stream.read(data_start - start))
+        crc = zlib.crc32(stream.read(end - data_start))
+        if number == 0:
+            at = find_card(header, b"FILESIZE=")
+            if at < 0:
+                raise UnsupportedCard("FILESIZE card missing")
+            header[at : at + 80] = card("FILESIZE", size, "bytes in this file")
+        fill_datacrc(header, crc)
+        stable_checksum_header(header)
+        stream.seek(start)
+        stream.write(header)
+
+
+def _index_table(
+    patch: PatchCoadd, planes: list[str], wcs_records: WcsRecords | None = None
+) -> np.ndarray:
+    records = [cell_record_json(cell, wcs_records) for cell in patch.cells.values()]
     width = max([1, *(len(text) for text in records)])
     dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
     dtype += [(column, "<i4") for column in _HDU_COLUMNS.values()]
@@ -134,12 +195,49 @@ def _index_table(patch: PatchCoadd, planes: list[str]) -> np.ndarray:
     return table
 
 
+class _CfitsioHdus:
+    """Cell HDUs written through CFITSIO (tile compression; the fallback)."""
+
+    def __init__(self, fits: fitsio.FITS, compress: bool) -> None:
+        self.fits = fits
+        self.compress = compress
+
+    def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
+        if self.compress and plane in _FLOAT_PLANES:
+            keys = [*keys, {"name": "CCBITS", "value": "FLOAT32", "comment": "int32 = bits"}]
+            _write_image(self.fits, data.view(np.int32), name, keys, compress="GZIP_2")
+        elif self.compress and plane == "mask":
+            _write_image(self.fits, data, name, keys, compress="RICE_1")
+        else:
+            _write_image(self.fits, data, name, keys)
+
+    def table(self, table: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
+        self.fits.write(table, extname=name)
+        self.fits[-1].write_keys([*keys, DATACRC_PLACEHOLDER])
+        self.fits[-1].write_checksum()
+
+
+class _DirectHdus:
+    """Uncompressed cell HDUs appended to ``stream`` (:mod:`cellcoadd.io.fits_direct`)."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self.stream = stream
+        self.scratch = fits_direct.Scratch()
+
+    def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
+        keys = [*keys, DATACRC_PLACEHOLDER]
+        fits_direct.write_image(self.stream, data, name, keys, self.scratch)
+
+    def table(self, table: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
+        fits_direct.write_table(self.stream, table, name, [*keys, DATACRC_PLACEHOLDER])
+
+
 def _write_cell(
-    fits: fitsio.FITS,
+    hdus: _CfitsioHdus | _DirectHdus,
     cell: CellCoadd,
     *,
-    compress: bool,
     plane_cards: dict[str, list[tuple[str, object, str]]] | None = None,
+    records: WcsRecords | None = None,
 ) -> None:
     keys: list[dict[str, Any]] = [
         {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
@@ -149,31 +247,22 @@ def _write_cell(
         name = extname(cell.index, plane)
         plane_keys: list[dict[str, Any]] = [*keys, {"name": "PLANE", "value": plane}]
         if plane == "inputs":
-            fits.write(inputs_to_array(cell.inputs, ascii_only=True), extname=name)
-            fits[-1].write_keys([*plane_keys, DATACRC_PLACEHOLDER])
-            fits[-1].write_checksum()
+            hdus.table(inputs_to_array(cell.inputs, ascii_only=True), name, plane_keys)
             continue
-        data = getattr(cell, plane)
         plane_keys += [
             {"name": key, "value": value, "comment": comment}
             for key, value, comment in (plane_cards or {}).get(plane, [])
         ]
         if plane == "image":
             # Standard WCS cards so viewers can place the image; the exact WCS is in CELLINDEX.
-            plane_keys += _wcs_cards(cell)
-        if compress and plane in _FLOAT_PLANES:
-            plane_keys.append({"name": "CCBITS", "value": "FLOAT32", "comment": "int32 = bits"})
-            _write_image(fits, data.view(np.int32), name, plane_keys, compress="GZIP_2")
-        elif compress and plane == "mask":
-            _write_image(fits, data, name, plane_keys, compress="RICE_1")
-        else:
-            _write_image(fits, data, name, plane_keys)
+            plane_keys += _wcs_cards(cell, records)
+        hdus.image(plane, getattr(cell, plane), name, plane_keys)
 
 
-def _wcs_cards(cell: CellCoadd) -> list[dict[str, Any]]:
+def _wcs_cards(cell: CellCoadd, records: WcsRecords | None = None) -> list[dict[str, Any]]:
     return [
         {"name": key, "value": value}
-        for key, value in wcs_to_record(cell.wcs)["header"]
+        for key, value in (records or wcs_to_record)(cell.wcs)["header"]
         if key not in ("COMMENT", "HISTORY", "")
     ]
 

@@ -23,6 +23,7 @@ import numpy as np
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import format_version
 from cellcoadd.io.cell_records import (
+    WcsRecords,
     cell_record_json,
     check_cell_geometry,
     expected_shapes,
@@ -82,8 +83,12 @@ def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
         h5.attrs["contents_sha256"] = np.bytes_(sha256_hex(payload + contents))
         _write_dataset(h5, "metadata", np.frombuffer(payload, dtype=np.uint8), compress=compress)
         cells = h5.create_group("cells")
+        plane_attrs = patch.metadata.unit_cards()
+        wcs_records = WcsRecords()
         for cell in patch.cells.values():
-            _write_cell(cells, cell, compress=compress, plane_attrs=patch.metadata.unit_cards())
+            _write_cell(
+                cells, cell, compress=compress, plane_attrs=plane_attrs, records=wcs_records
+            )
 
 
 def contents_json(indices: list[tuple[int, int]]) -> str:
@@ -101,11 +106,14 @@ def _write_cell(
     *,
     compress: bool,
     plane_attrs: dict[str, list[tuple[str, object, str]]] | None = None,
+    records: WcsRecords | None = None,
 ) -> None:
     group = cells.create_group(group_name(cell.index))
-    record = cell_record_json(cell).encode("ascii")
+    record = cell_record_json(cell, records).encode("ascii")
     group.attrs["cell"] = np.bytes_(record)
     group.attrs["cell_sha256"] = np.bytes_(sha256_hex(record))
+    # Each dataset is closed (its chunk written) before the next is made, and attributes
+    # come last: this order decides where HDF5 puts things, hence the file's bytes.
     for plane, dtype in _DTYPES.items():
         _write_dataset(group, plane, getattr(cell, plane).astype(dtype, copy=False), compress)
     _write_dataset(group, "inputs", inputs_to_array(cell.inputs, ascii_only=False), compress)

@@ -129,9 +129,15 @@ def apply_wcs_exact_keywords(wcs: WCS, values: dict[str, float]) -> None:
     apply_wcs_exact_parameters(wcs, exact)
 
 
-def wcs_to_record(wcs: WCS) -> dict[str, Any]:
+def wcs_to_record(
+    wcs: WCS, *, card_values: dict[str, tuple[str, Any]] | None = None
+) -> dict[str, Any]:
     """A JSON-able description of a celestial WCS from which :func:`wcs_from_record` rebuilds
     it exactly.
+
+    ``card_values``, optional, remembers ``(keyword, value)`` by the text of each header
+    card across calls (parsing card values is most of the cost; the same text always gives
+    the same value).
 
     ``header`` holds the ``(keyword, value)`` cards of :func:`wcs_header`; because FITS
     cards print only ~14 significant digits, ``exact`` repeats the numerical parameters
@@ -147,7 +153,19 @@ def wcs_to_record(wcs: WCS) -> dict[str, Any]:
         raise ValueError("WCS lookup-table distortions (CPDIS/DET2IM) cannot be stored")
     header = wcs_header(wcs)
     exact = wcs_exact_parameters(wcs)
-    return {"header": [[card.keyword, card.value] for card in header.cards], "exact": exact}
+    if card_values is None:
+        return {"header": [[card.keyword, card.value] for card in header.cards], "exact": exact}
+    cards = []
+    for card in header.cards:
+        image = getattr(card, "_image", None)  # the card's text as wcslib printed it
+        if not isinstance(image, str) or getattr(card, "_modified", True):
+            cards.append([card.keyword, card.value])
+            continue
+        parsed = card_values.get(image)
+        if parsed is None:
+            parsed = card_values[image] = (card.keyword, card.value)
+        cards.append(list(parsed))
+    return {"header": cards, "exact": exact}
 
 
 def wcs_from_record(record: dict[str, Any]) -> WCS:
