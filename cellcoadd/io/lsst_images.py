@@ -30,304 +30,50 @@ lsst-images needs Python >= 3.12: install the ``lsst`` extra (``pip install
 from __future__ import annotations
 
 import json
-import math
 import os
-import re
-import struct
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from astropy import units as u
-from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError, InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.io.lsst_images_parts import (
+    KEY_CELL,
+    KEY_CELL_WCS,
+    KEY_FORMAT,
+    KEY_INNER,
+    KEY_INPUTS,
+    KEY_MODE,
+    KEY_PATCH,
+    KEY_TRACT_WCS,
+    LSST_IMAGES_FORMAT,
+    LSST_SUFFIXES,
+    MFRAC_KEY,
+    Mode,
+    box_from_json,
+    box_to_json,
+    common_metadata,
+    export_unit,
+    from_lsst_mask,
+    input_provenance,
+    lsst_box,
+    lsst_image,
+    lsst_images_module,
+    lsst_patch_definition,
+    mask_schema,
+    patch_tract_wcs,
+    records_from_json,
+    records_to_json,
+    to_lsst_mask,
+    tract_sky_projection,
+)
 from cellcoadd.model.cell_coadd import CellCoadd
-from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
-from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
-
-Mode = Literal["stitched", "per_cell"]
-
-#: The pip requirement that brings lsst-images in.
-EXTRA_HINT = "pip install 'cellcoadd[lsst]' (lsst-images needs Python >= 3.12)"
-
-#: Name given to the sky map in lsst-images' TractFrame.
-SKYMAP_NAME = "cellcoadd"
-
-#: Instrument name written in the provenance tables (inputs carry no instrument).
-INSTRUMENT = "unknown"
-
-#: Key of the mask-fraction image (``CellCoadd.mfrac``) in ``mask_fractions``.
-MFRAC_KEY = "mfrac"
-
-#: Metadata keys (native metadata of the lsst-images object).
-_KEY_FORMAT = "cellcoadd.format"
-_KEY_MODE = "cellcoadd.mode"
-_KEY_PATCH = "cellcoadd.patch_metadata"
-_KEY_UNITS = "cellcoadd.units"
-_KEY_ZERO_POINT = "cellcoadd.zero_point"
-_KEY_TRACT_WCS = "cellcoadd.tract_wcs"
-_KEY_CELL_WCS = "cellcoadd.cell_wcs"
-_KEY_CELL = "cellcoadd.cell_index"
-_KEY_INNER = "cellcoadd.inner_bbox"
-_KEY_INPUTS = "cellcoadd.inputs"
-_KEY_MFRAC = "cellcoadd.mfrac"
-
-#: Version of the ``cellcoadd.*`` metadata layout.
-LSST_IMAGES_FORMAT = 1
-
-#: Descriptions of cellcoadd's default mask bits (lsst-images stores one per plane).
-MASK_DESCRIPTIONS: dict[str, str] = {
-    "BAD": "Detector defect in an input exposure (interpolated before coaddition).",
-    "SAT": "Saturated in an input exposure (interpolated before coaddition).",
-    "CR": "Cosmic ray in an input exposure (interpolated before coaddition).",
-    "EDGE": "Detector edge in an input exposure.",
-    "NO_DATA": "No input data (empty cell, or outside the valid region).",
-    "INTRP": "Interpolated over.",
-    "SUSPECT": "Near saturation or non-linear in an input exposure.",
-    "STREAK": "Satellite trail in an input exposure.",
-}
-
-_MFRAC_DESCRIPTION = (
-    "Fraction of the coadd weight that came from masked (interpolated) input pixels, "
-    "cellcoadd's mfrac plane."
-)
-
-#: "counts at zero point 30 ..." (the free text of PatchMetadata.units before format 1.2).
-_COUNTS_AT_ZP = re.compile(r"^\s*counts?\s+at\s+(?:the\s+)?zero\s*point\s+([-+0-9.eE]+)", re.I)
-
-_LSST_SUFFIXES = (".fits", ".sdf", ".json")
-
-
-def _lsst() -> Any:
-    """``lsst.images`` with its ``cells`` subpackage, or ImportError naming the extra."""
-    try:
-        import lsst.images as images
-        import lsst.images.cells  # noqa: F401  (attribute of ``images`` from here on)
-    except ImportError as err:
-        raise ImportError(
-            f"converting to or from lsst-images needs the 'lsst-images' package: {EXTRA_HINT}"
-            f" ({err})"
-        ) from err
-    return images
-
-
-# ----------------------------------------------------------------------------------------
-# units
-
-
-def _export_unit(meta: PatchMetadata) -> tuple[u.UnitBase, float | None]:
-    """``(unit, zero_point)`` written to lsst-images: nJy, or counts with their zero point.
-
-    Read from ``meta.units`` at run time (``"nJy"`` or ``"count"``, with
-    ``meta.zero_point`` for counts); the free text of older metadata (``"counts at zero
-    point 30"``) and other spellings astropy parses are accepted. Never a scaled unit:
-    lsst-images does not read back the rounded scale factors it writes.
-    """
-    text = meta.units
-    legacy = _COUNTS_AT_ZP.match(text)
-    if legacy:
-        return u.ct, float(legacy.group(1))
-    try:
-        unit = u.Unit(text, parse_strict="raise")
-    except ValueError as err:
-        raise ValueError(f"patch units {text!r} are not an astropy unit: {err}") from None
-    if unit == u.ct:
-        zero_point = getattr(meta, "zero_point", None)
-        if zero_point is None:
-            zero_point = meta.build_config.zero_point
-        return u.ct, float(zero_point)
-    if unit == u.nJy:
-        return u.nJy, None
-    raise ValueError(
-        f"patch units {text!r}: only nJy and counts (with a zero point) are exported to lsst-images"
-    )
-
-
-# ----------------------------------------------------------------------------------------
-# metadata codecs (lsst-images metadata values are scalars: JSON goes in strings)
-
-
-def _float_bits(value: float) -> str:
-    return struct.pack("<d", value).hex()
-
-
-def _bits_float(text: str) -> float:
-    return float(struct.unpack("<d", bytes.fromhex(text))[0])
-
-
-def _records_to_json(records: list[InputRecord]) -> list[dict[str, Any]]:
-    # floats as IEEE-754 bytes, so NaN payloads and -0.0 come back bit for bit
-    out = []
-    for record in records:
-        item: dict[str, Any] = record.model_dump(mode="json", exclude=set(FLOAT_FIELDS))
-        item.update({name: _float_bits(getattr(record, name)) for name in FLOAT_FIELDS})
-        out.append(item)
-    return out
-
-
-def _records_from_json(items: list[dict[str, Any]]) -> list[InputRecord]:
-    records = []
-    for item in items:
-        fields = dict(item)
-        for name in FLOAT_FIELDS:
-            fields[name] = _bits_float(fields[name])
-        records.append(InputRecord.model_validate(fields))
-    return records
-
-
-def _box_json(box: Box) -> list[int]:
-    return [box.x_start, box.x_stop, box.y_start, box.y_stop]
-
-
-def _box_from_json(values: list[int]) -> Box:
-    x_start, x_stop, y_start, y_stop = (int(v) for v in values)
-    return Box(x_start=x_start, x_stop=x_stop, y_start=y_start, y_stop=y_stop)
-
-
-# ----------------------------------------------------------------------------------------
-# lsst-images building blocks
-
-
-def _lsst_box(images: Any, box: Box) -> Any:
-    return images.Box.factory[box.y_start : box.y_stop, box.x_start : box.x_stop]
-
-
-def _mask_schema(images: Any, bits: MaskBits) -> Any:
-    # plane at overall index b = our bit b, so the bit layout is ours
-    planes: list[Any] = [None] * (max(bits.bits.values()) + 1)
-    for name, bit in bits.bits.items():
-        description = MASK_DESCRIPTIONS.get(name, f"cellcoadd mask bit {name}.")
-        planes[bit] = images.MaskPlane(name, description)
-    return images.MaskSchema(planes)
-
-
-def _to_lsst_mask(images: Any, mask: np.ndarray, schema: Any, bits: MaskBits, bbox: Any) -> Any:
-    out = images.Mask(0, schema=schema, bbox=bbox)
-    for name, bit in bits.bits.items():
-        out.set(name, (mask >> bit) & 1 != 0)
-    return out
-
-
-def _from_lsst_mask(mask: Any, bits: MaskBits) -> np.ndarray:
-    unknown = sorted(set(mask.schema.names) - set(bits.bits))
-    if unknown:
-        raise InvalidCoaddError(f"lsst-images mask planes {unknown} have no cellcoadd bit")
-    out = np.zeros(mask.array.shape[:2], dtype=np.int32)
-    for name in mask.schema.names:
-        out |= mask.get(name).astype(np.int32) << bits.bits[name]
-    return out
-
-
-def _image(images: Any, array: np.ndarray, bbox: Any, unit: u.UnitBase | None) -> Any:
-    return images.Image(np.array(array, copy=True), bbox=bbox, unit=unit)
-
-
-def _psf_moments_pix2(record: InputRecord, scale: float) -> tuple[float, float, float, bool]:
-    """``(Ixx, Iyy, Ixy, flag)`` in pixel^2 from ``psf_T`` (arcsec^2) and the distortions."""
-    half = record.psf_T / scale**2 / 2.0
-    values = (half * (1.0 + record.psf_e1), half * (1.0 - record.psf_e1), half * record.psf_e2)
-    ok = all(math.isfinite(v) for v in values)
-    return (*values, not ok) if ok else (math.nan, math.nan, math.nan, True)
-
-
-def _provenance(
-    images: Any,
-    used: list[tuple[tuple[int, int], Box, list[InputRecord]]],
-    scale: float,
-) -> Any:
-    """CoaddProvenance of the used inputs: ``used`` = [(cell ij, outer box, records)]."""
-    contributions_rows = [(ij, r) for ij, _, records in used for r in records if r.is_used]
-    if not contributions_rows:
-        return None
-    provenance_type = images.cells.CoaddProvenance
-    # one input row per (visit, detector): its polygon is the box holding the outer boxes
-    # of the cells that used it (edge-free inputs cover each of them entirely)
-    extent: dict[tuple[int, int], list[int]] = {}
-    filters: dict[tuple[int, int], str] = {}
-    for _, box, records in used:
-        for record in records:
-            if not record.is_used:
-                continue
-            bounds = extent.setdefault(
-                record.key, [box.x_start, box.x_stop, box.y_start, box.y_stop]
-            )
-            bounds[0] = min(bounds[0], box.x_start)
-            bounds[1] = max(bounds[1], box.x_stop)
-            bounds[2] = min(bounds[2], box.y_start)
-            bounds[3] = max(bounds[3], box.y_stop)
-            filters.setdefault(record.key, record.band)
-    inputs = provenance_type.make_empty_input_table(len(extent))
-    for n, (key, (x0, x1, y0, y1)) in enumerate(sorted(extent.items())):
-        inputs["instrument"][n] = INSTRUMENT
-        inputs["visit"][n] = key[0]
-        inputs["detector"][n] = key[1]
-        inputs["physical_filter"][n] = filters[key]
-        inputs["day_obs"][n] = 0
-        inputs["polygon"][n] = images.Polygon.from_box(images.Box.factory[y0:y1, x0:x1])
-    table = provenance_type.make_empty_contribution_table(len(contributions_rows))
-    for n, ((i, j), record) in enumerate(contributions_rows):
-        xx, yy, xy, flag = _psf_moments_pix2(record, scale)
-        table["cell_i"][n] = i
-        table["cell_j"][n] = j
-        table["instrument"][n] = INSTRUMENT
-        table["visit"][n] = record.visit
-        table["detector"][n] = record.detector
-        table["overlaps_center"][n] = True
-        table["overlap_fraction"][n] = record.overlap_fraction
-        table["unmasked_fraction"][n] = math.nan  # not recorded per input by cellcoadd
-        table["weight"][n] = record.weight
-        table["psf_shape_xx"][n] = xx
-        table["psf_shape_yy"][n] = yy
-        table["psf_shape_xy"][n] = xy
-        table["psf_shape_flag"][n] = flag
-    return provenance_type(inputs=inputs, contributions=table)
-
-
-def _tract_wcs(patch: PatchCoadd) -> WCS:
-    """The tract WCS (array pixel (0, 0) = tract pixel (0, 0)) from a stored cell's WCS."""
-    for cell in patch.cells.values():
-        return shifted_wcs(cell.wcs, -cell.outer_bbox.x_start, -cell.outer_bbox.y_start)
-    return patch.metadata.geometry.tract.wcs
-
-
-def _sky_projection(images: Any, meta: PatchMetadata, tract_wcs: WCS) -> Any:
-    side = meta.skymap_config.tract_pixels
-    tract_box = images.Box.factory[0:side, 0:side]
-    frame = images.TractFrame(skymap=SKYMAP_NAME, tract=meta.tract, bbox=tract_box)
-    return images.SkyProjection.from_fits_wcs(tract_wcs, frame, pixel_bounds=tract_box)
-
-
-def _patch_definition(images: Any, meta: PatchMetadata, grid: Any) -> Any:
-    px, py = meta.patch
-    return images.cells.PatchDefinition(
-        id=py * meta.skymap_config.patches_per_tract + px,
-        index=images.YX(y=py, x=px),
-        inner_bbox=_lsst_box(images, meta.patch_inner_bbox),
-        cells=grid,
-    )
-
-
-def _common_metadata(meta: PatchMetadata, mode: Mode, zero_point: float | None) -> dict[str, Any]:
-    out: dict[str, Any] = {
-        _KEY_FORMAT: LSST_IMAGES_FORMAT,
-        _KEY_MODE: mode,
-        _KEY_PATCH: meta.model_dump_json(),
-        _KEY_UNITS: meta.units,
-        _KEY_MFRAC: _MFRAC_DESCRIPTION,
-    }
-    if zero_point is not None:
-        out[_KEY_ZERO_POINT] = zero_point
-    return out
-
-
-# ----------------------------------------------------------------------------------------
-# export
 
 
 def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
@@ -363,7 +109,7 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
         raise TypeError(f"patch must be a PatchCoadd, got {type(patch).__name__}")
     if mode not in ("stitched", "per_cell"):
         raise ValueError(f"mode must be 'stitched' or 'per_cell', got {mode!r}")
-    images = _lsst()
+    images = lsst_images_module()
     if mode == "stitched":
         return _to_stitched(images, patch)
     return {index: _to_single_cell(images, patch, cell) for index, cell in patch.cells.items()}
@@ -371,7 +117,7 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
 
 def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
     meta = patch.metadata
-    unit, zero_point = _export_unit(meta)
+    unit, zero_point = export_unit(meta)
     side = meta.cell_inner
     all_cells = meta.all_cell_indices
     cx0 = min(c[0] for c in all_cells)
@@ -382,7 +128,7 @@ def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
     grid_box = images.Box.factory[cy0 * side : (cy0 + n_y) * side, cx0 * side : (cx0 + n_x) * side]
     grid = cells_api.CellGrid(bbox=grid_box, cell_shape=images.YX(y=side, x=side))
     inner = meta.patch_inner_bbox
-    bbox = _lsst_box(images, inner)
+    bbox = lsst_box(images, inner)
 
     def ij(index: tuple[int, int]) -> tuple[int, int]:
         return (index[1] - cy0, index[0] - cx0)
@@ -400,67 +146,69 @@ def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
         i, j = ij(index)
         cell = patch.cells.get(index)
         if cell is not None:
-            inputs_json[f"{index[0]},{index[1]}"] = _records_to_json(cell.inputs)
+            inputs_json[f"{index[0]},{index[1]}"] = records_to_json(cell.inputs)
         if cell is None or cell.is_empty:
             missing.add(cells_api.CellIJ(i=i, j=j))
             continue
         psf[i - i_min, j - j_min] = cell.psf
         used.append(((i, j), cell.outer_bbox, cell.inputs))
     bounds = cells_api.CellGridBounds(grid=grid, bbox=bbox, missing=frozenset(missing))
-    tract_wcs = _tract_wcs(patch)
-    projection = _sky_projection(images, meta, tract_wcs)
-    schema = _mask_schema(images, meta.mask_bits)
-    provenance = _provenance(images, used, meta.skymap_config.pixel_scale)
+    tract_wcs = patch_tract_wcs(patch)
+    projection = tract_sky_projection(images, meta, tract_wcs)
+    schema = mask_schema(images, meta.mask_bits)
+    provenance = input_provenance(images, used, meta.skymap_config.pixel_scale)
     coadd = cells_api.CellCoadd(
-        _image(images, patch.stitch("image"), bbox, unit),
-        mask=_to_lsst_mask(images, patch.stitch("mask"), schema, meta.mask_bits, bbox),
-        variance=_image(images, patch.stitch("variance"), bbox, unit**2),
-        mask_fractions={MFRAC_KEY: _image(images, patch.stitch("mfrac"), bbox, None)},
+        lsst_image(images, patch.stitch("image"), bbox, unit),
+        mask=to_lsst_mask(images, patch.stitch("mask"), schema, meta.mask_bits, bbox),
+        variance=lsst_image(images, patch.stitch("variance"), bbox, unit**2),
+        mask_fractions={MFRAC_KEY: lsst_image(images, patch.stitch("mfrac"), bbox, None)},
         noise_realizations=[
-            _image(images, patch.stitch("noise", k), bbox, unit) for k in range(meta.n_noise)
+            lsst_image(images, patch.stitch("noise", k), bbox, unit) for k in range(meta.n_noise)
         ],
         sky_projection=projection,
         band=meta.band,
         psf=cells_api.CellPointSpreadFunction(psf, bounds),
-        patch=_patch_definition(images, meta, grid),
+        patch=lsst_patch_definition(images, meta, grid),
         provenance=provenance,
     )
-    coadd.metadata.update(_common_metadata(meta, "stitched", zero_point))
-    coadd.metadata[_KEY_TRACT_WCS] = json.dumps(wcs_to_record(tract_wcs))
-    coadd.metadata[_KEY_INPUTS] = json.dumps(inputs_json)
+    coadd.metadata.update(common_metadata(meta, "stitched", zero_point))
+    coadd.metadata[KEY_TRACT_WCS] = json.dumps(wcs_to_record(tract_wcs))
+    coadd.metadata[KEY_INPUTS] = json.dumps(inputs_json)
     return coadd
 
 
 def _to_single_cell(images: Any, patch: PatchCoadd, cell: CellCoadd) -> Any:
     meta = patch.metadata
-    unit, zero_point = _export_unit(meta)
+    unit, zero_point = export_unit(meta)
     cells_api = images.cells
     outer = cell.outer_bbox
-    bbox = _lsst_box(images, outer)
+    bbox = lsst_box(images, outer)
     # a one-cell grid whose cell is the outer box, so the borders are kept
     grid = cells_api.CellGrid(bbox=bbox, cell_shape=images.YX(y=outer.ny, x=outer.nx))
     missing = frozenset({cells_api.CellIJ(i=0, j=0)}) if cell.is_empty else frozenset()
     bounds = cells_api.CellGridBounds(grid=grid, bbox=bbox, missing=missing)
     tract_wcs = shifted_wcs(cell.wcs, -outer.x_start, -outer.y_start)
-    schema = _mask_schema(images, meta.mask_bits)
-    provenance = _provenance(images, [((0, 0), outer, cell.inputs)], meta.skymap_config.pixel_scale)
+    schema = mask_schema(images, meta.mask_bits)
+    provenance = input_provenance(
+        images, [((0, 0), outer, cell.inputs)], meta.skymap_config.pixel_scale
+    )
     coadd = cells_api.CellCoadd(
-        _image(images, cell.image, bbox, unit),
-        mask=_to_lsst_mask(images, cell.mask, schema, meta.mask_bits, bbox),
-        variance=_image(images, cell.variance, bbox, unit**2),
-        mask_fractions={MFRAC_KEY: _image(images, cell.mfrac, bbox, None)},
-        noise_realizations=[_image(images, plane, bbox, unit) for plane in cell.noise],
-        sky_projection=_sky_projection(images, meta, tract_wcs),
+        lsst_image(images, cell.image, bbox, unit),
+        mask=to_lsst_mask(images, cell.mask, schema, meta.mask_bits, bbox),
+        variance=lsst_image(images, cell.variance, bbox, unit**2),
+        mask_fractions={MFRAC_KEY: lsst_image(images, cell.mfrac, bbox, None)},
+        noise_realizations=[lsst_image(images, plane, bbox, unit) for plane in cell.noise],
+        sky_projection=tract_sky_projection(images, meta, tract_wcs),
         band=meta.band,
         psf=cells_api.CellPointSpreadFunction(cell.psf[np.newaxis, np.newaxis].copy(), bounds),
-        patch=_patch_definition(images, meta, grid),
+        patch=lsst_patch_definition(images, meta, grid),
         provenance=provenance,
     )
-    coadd.metadata.update(_common_metadata(meta, "per_cell", zero_point))
-    coadd.metadata[_KEY_CELL] = json.dumps([cell.index[0], cell.index[1], cell.tract])
-    coadd.metadata[_KEY_INNER] = json.dumps(_box_json(cell.inner_bbox))
-    coadd.metadata[_KEY_CELL_WCS] = json.dumps(wcs_to_record(cell.wcs))
-    coadd.metadata[_KEY_INPUTS] = json.dumps(_records_to_json(cell.inputs))
+    coadd.metadata.update(common_metadata(meta, "per_cell", zero_point))
+    coadd.metadata[KEY_CELL] = json.dumps([cell.index[0], cell.index[1], cell.tract])
+    coadd.metadata[KEY_INNER] = json.dumps(box_to_json(cell.inner_bbox))
+    coadd.metadata[KEY_CELL_WCS] = json.dumps(wcs_to_record(cell.wcs))
+    coadd.metadata[KEY_INPUTS] = json.dumps(records_to_json(cell.inputs))
     return coadd
 
 
@@ -495,7 +243,7 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
     CellCoaddFormatError
         If a path is a cellcoadd file, a ``.h5``/``.hdf5`` name or not an lsst-images name.
     """
-    images = _lsst()
+    images = lsst_images_module()
     if isinstance(obj, (str, os.PathLike)):
         obj = _read_path(images, Path(obj))
     if isinstance(obj, Mapping):
@@ -508,7 +256,7 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
             f"expected an lsst.images.cells.CellCoadd, a mapping of them or a path, "
             f"got {type(obj).__name__}"
         )
-    mode = _metadata_of(obj)[_KEY_MODE]
+    mode = _metadata_of(obj)[KEY_MODE]
     if mode == "per_cell":
         return _from_per_cell([obj])
     return _from_stitched(obj)
@@ -523,8 +271,8 @@ def _read_path(images: Any, path: Path) -> Any:
             "cellcoadd.read); lsst-images would take them for Starlink NDF. Write lsst-images "
             "files as .fits or .sdf",
         )
-    if not name.endswith(_LSST_SUFFIXES):
-        raise CellCoaddFormatError(path, f"lsst-images files end in {', '.join(_LSST_SUFFIXES)}")
+    if not name.endswith(LSST_SUFFIXES):
+        raise CellCoaddFormatError(path, f"lsst-images files end in {', '.join(LSST_SUFFIXES)}")
     if name.endswith(".fits") and _is_cellcoadd_fits(path):
         raise CellCoaddFormatError(
             path, "a cellcoadd FITS file, not an lsst-images one: read it with cellcoadd.read"
@@ -547,25 +295,25 @@ def _is_cellcoadd_fits(path: Path) -> bool:
 
 def _metadata_of(coadd: Any) -> Mapping[str, Any]:
     metadata = coadd.metadata
-    if metadata.get(_KEY_FORMAT) is None:
+    if metadata.get(KEY_FORMAT) is None:
         raise InvalidCoaddError(
             "this lsst-images coadd was not written by cellcoadd (no 'cellcoadd.format' "
             "metadata); only coadds from to_lsst_images can be converted back"
         )
-    version = metadata[_KEY_FORMAT]
+    version = metadata[KEY_FORMAT]
     if version != LSST_IMAGES_FORMAT:
         raise InvalidCoaddError(
             f"cellcoadd lsst-images metadata version {version} is not supported "
             f"(this cellcoadd reads version {LSST_IMAGES_FORMAT})"
         )
-    if metadata.get(_KEY_MODE) not in ("stitched", "per_cell"):
-        raise InvalidCoaddError(f"unknown cellcoadd.mode {metadata.get(_KEY_MODE)!r}")
+    if metadata.get(KEY_MODE) not in ("stitched", "per_cell"):
+        raise InvalidCoaddError(f"unknown cellcoadd.mode {metadata.get(KEY_MODE)!r}")
     return metadata
 
 
 def _patch_metadata(coadd: Any) -> PatchMetadata:
-    meta = PatchMetadata.model_validate_json(str(_metadata_of(coadd)[_KEY_PATCH]))
-    unit, _ = _export_unit(meta)
+    meta = PatchMetadata.model_validate_json(str(_metadata_of(coadd)[KEY_PATCH]))
+    unit, _ = export_unit(meta)
     if coadd.unit != unit:
         raise InvalidCoaddError(
             f"the lsst-images coadd is in {coadd.unit}, its cellcoadd metadata say {meta.units}"
@@ -578,7 +326,7 @@ def _from_per_cell(coadds: list[Any]) -> PatchCoadd:
     cells: dict[tuple[int, int], CellCoadd] = {}
     for coadd in coadds:
         metadata = _metadata_of(coadd)
-        if metadata[_KEY_MODE] != "per_cell":
+        if metadata[KEY_MODE] != "per_cell":
             raise InvalidCoaddError("a mapping of coadds must hold per-cell coadds only")
         if _patch_metadata(coadd) != meta:
             raise InvalidCoaddError("the per-cell coadds belong to different patches")
@@ -595,8 +343,8 @@ def _float32(image: Any) -> np.ndarray:
 
 def _cell_from_single(coadd: Any, meta: PatchMetadata) -> CellCoadd:
     metadata = coadd.metadata
-    cx, cy, tract = json.loads(str(metadata[_KEY_CELL]))
-    inner = _box_from_json(json.loads(str(metadata[_KEY_INNER])))
+    cx, cy, tract = json.loads(str(metadata[KEY_CELL]))
+    inner = box_from_json(json.loads(str(metadata[KEY_INNER])))
     outer = Box(
         x_start=coadd.bbox.x.start,
         x_stop=coadd.bbox.x.stop,
@@ -606,17 +354,17 @@ def _cell_from_single(coadd: Any, meta: PatchMetadata) -> CellCoadd:
     psf = np.asarray(coadd.psf._array[0, 0], dtype=np.float64)
     return CellCoadd(
         image=_float32(coadd.image),
-        mask=_from_lsst_mask(coadd.mask, meta.mask_bits),
+        mask=from_lsst_mask(coadd.mask, meta.mask_bits),
         variance=_float32(coadd.variance),
         noise=_noise(coadd, outer.shape),
         mfrac=_float32(coadd.mask_fractions[MFRAC_KEY]),
         psf=psf,
-        inputs=_records_from_json(json.loads(str(metadata[_KEY_INPUTS]))),
+        inputs=records_from_json(json.loads(str(metadata[KEY_INPUTS]))),
         tract=int(tract),
         index=(int(cx), int(cy)),
         inner_bbox=inner,
         outer_bbox=outer,
-        wcs=wcs_from_record(json.loads(str(metadata[_KEY_CELL_WCS]))),
+        wcs=wcs_from_record(json.loads(str(metadata[KEY_CELL_WCS]))),
     )
 
 
@@ -637,19 +385,19 @@ def _from_stitched(coadd: Any) -> PatchCoadd:
         raise InvalidCoaddError(
             f"stitched coadd covers {coadd.bbox}, not the patch inner box {inner_box}"
         )
-    tract_wcs = wcs_from_record(json.loads(str(metadata[_KEY_TRACT_WCS])))
+    tract_wcs = wcs_from_record(json.loads(str(metadata[KEY_TRACT_WCS])))
     inputs = {
-        tuple(int(v) for v in key.split(",")): _records_from_json(items)
-        for key, items in json.loads(str(metadata[_KEY_INPUTS])).items()
+        tuple(int(v) for v in key.split(",")): records_from_json(items)
+        for key, items in json.loads(str(metadata[KEY_INPUTS])).items()
     }
     image = _float32(coadd.image)
     variance = _float32(coadd.variance)
     mfrac = _float32(coadd.mask_fractions[MFRAC_KEY])
-    mask = _from_lsst_mask(coadd.mask, meta.mask_bits)
+    mask = from_lsst_mask(coadd.mask, meta.mask_bits)
     noise = _noise(coadd, image.shape)
     no_data = meta.mask_bits.value("NO_DATA")
     bounds = coadd.psf.bounds
-    cells_api = _lsst().cells
+    cells_api = lsst_images_module().cells
     grid_x0, grid_y0 = bounds.grid.bbox.x.start, bounds.grid.bbox.y.start
     side = meta.cell_inner
     cells: dict[tuple[int, int], CellCoadd] = {}

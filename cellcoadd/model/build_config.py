@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
+    check_units,
     is_njy_zero_point,
     normalise_unit,
 )
@@ -101,13 +102,7 @@ class BuildConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check_units(self) -> BuildConfig:
-        if self.units == "nJy" and self.zero_point != NJY_ZERO_POINT:
-            raise ValueError(
-                f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
-                f"{self.zero_point}; use units 'count' for counts at another zero point"
-            )
-        if self.units == "count" and "zero_point" not in self.model_fields_set:
-            raise ValueError("units 'count' need a zero_point (mag)")
+        check_units(self.units, self.zero_point, "zero_point" in self.model_fields_set)
         return self
 
     def required_mask_bits(self) -> tuple[str, ...]:

@@ -26,10 +26,9 @@ from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
-    is_njy_zero_point,
-    legacy_units,
+    check_units,
     mask_plane_cards,
-    normalise_unit,
+    stored_units,
     unit_cards,
 )
 
@@ -159,42 +158,15 @@ class PatchMetadata(BaseModel):
     def _map_units(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        text = data.get("units")
-        unit = normalise_unit(text)
-        stated: float | None = None
-        if unit is None and isinstance(text, str):
-            legacy = legacy_units(text)
-            if legacy is None and _before_units(data.get("format_version")):
-                legacy = ("count", None)  # old free text: counts at the build's zero point
-            if legacy is not None:
-                unit, stated = legacy
-        if unit is None:
-            return data  # refused by the field's validation
-        data = {**data, "units": unit}
-        zero_point = data.get("zero_point")
-        if unit == "nJy":
-            if zero_point is None or (
-                isinstance(zero_point, (int, float)) and is_njy_zero_point(float(zero_point))
-            ):
-                data["zero_point"] = NJY_ZERO_POINT
-        elif zero_point is None:
-            built = _build_zero_point(data.get("build_config"))
-            if stated is not None and built is not None and abs(stated - built) < 1e-3:
-                stated = built  # the text is rounded (%g); the configuration is exact
-            zero_point = stated if stated is not None else built
-            if zero_point is not None:
-                data["zero_point"] = zero_point
-        return data
+        return stored_units(
+            data,
+            before_units=_before_units(data.get("format_version")),
+            build_zero_point=_build_zero_point(data.get("build_config")),
+        )
 
     @model_validator(mode="after")
     def _check_units(self) -> PatchMetadata:
-        if self.units == "nJy" and self.zero_point != NJY_ZERO_POINT:
-            raise ValueError(
-                f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
-                f"{self.zero_point}; use units 'count' for counts at another zero point"
-            )
-        if self.units == "count" and "zero_point" not in self.model_fields_set:
-            raise ValueError("units 'count' need a zero_point (mag)")
+        check_units(self.units, self.zero_point, "zero_point" in self.model_fields_set)
         return self
 
     @field_validator("tract_center")

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Literal
+from typing import Any, Literal
 
 #: AB magnitude of 1 nJy: ``-2.5 log10(1e-9 / 3631) = 2.5 log10(3631e9) = 31.4`` (31.40006).
 NJY_ZERO_POINT = 2.5 * math.log10(3631.0e9)
@@ -146,3 +146,66 @@ __all__ = [
     "variance_unit",
     "zero_point_of",
 ]
+
+
+def check_units(units: str, zero_point: float, zero_point_given: bool) -> None:
+    """Refuse a unit and zero point that contradict each other.
+
+    Raises
+    ------
+    ValueError
+        For nJy at another zero point than :data:`NJY_ZERO_POINT`, or counts without a
+        stated zero point.
+    """
+    if units == "nJy" and zero_point != NJY_ZERO_POINT:
+        raise ValueError(
+            f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
+            f"{zero_point}; use units 'count' for counts at another zero point"
+        )
+    if units == "count" and not zero_point_given:
+        raise ValueError("units 'count' need a zero_point (mag)")
+
+
+def stored_units(
+    data: dict[str, Any], *, before_units: bool, build_zero_point: float | None
+) -> dict[str, Any]:
+    """Patch metadata (as read) with ``units`` in stored form and its ``zero_point``.
+
+    Parameters
+    ----------
+    data : dict
+        The metadata fields; ``units`` may be a spelling or, in files of format 1.0 and
+        1.1 (``before_units``), free text (:func:`legacy_units`; unknown text there is
+        counts at the build's zero point).
+    before_units : bool
+        Whether the metadata predate unit strings.
+    build_zero_point : float, optional
+        The zero point the build configuration states (exact, where the free text of old
+        files is rounded).
+    """
+    text = data.get("units")
+    unit = normalise_unit(text)
+    stated: float | None = None
+    if unit is None and isinstance(text, str):
+        legacy = legacy_units(text)
+        if legacy is None and before_units:
+            legacy = ("count", None)
+        if legacy is not None:
+            unit, stated = legacy
+    if unit is None:
+        return data  # refused by the field's validation
+    data = {**data, "units": unit}
+    zero_point = data.get("zero_point")
+    if unit == "nJy":
+        if zero_point is None or (
+            isinstance(zero_point, (int, float)) and is_njy_zero_point(float(zero_point))
+        ):
+            data["zero_point"] = NJY_ZERO_POINT
+    elif zero_point is None:
+        if stated is not None and build_zero_point is not None:
+            if abs(stated - build_zero_point) < 1e-3:
+                stated = build_zero_point  # the text is rounded (%g); the config is exact
+        zero_point = stated if stated is not None else build_zero_point
+        if zero_point is not None:
+            data["zero_point"] = zero_point
+    return data
