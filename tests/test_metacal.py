@@ -491,3 +491,60 @@ def test_response_skips_flagged_objects():
     np.testing.assert_allclose(g_all, (0.01, 0.0), atol=1e-12)
     with pytest.raises(ValueError, match="missing"):
         shear_response({"noshear": catalogues["noshear"]})
+
+
+# --- fixed-weight Gaussian moments (wmom) ------------------------------------------------
+
+
+def _weighted_gaussian(cov: np.ndarray, weight_fwhm: float) -> np.ndarray:
+    """Covariance of a Gaussian of covariance ``cov`` times a round Gaussian weight."""
+    sigma_w = weight_fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    return np.linalg.inv(np.linalg.inv(cov) + np.eye(2) / sigma_w**2)
+
+
+@pytest.mark.parametrize("jacobian", [SQUARE_JACOBIAN, SKEW_JACOBIAN], ids=["square", "skew"])
+def test_wmom_shape_of_gaussian_matches_analytic_value(jacobian):
+    from cellcoadd.shear.shapes import measure_wmom
+
+    # galsim shear + WCS: the sky covariance of the profile is sigma^2 A A^T
+    shear = galsim.Shear(g1=0.2, g2=-0.1)
+    gal = galsim.Gaussian(sigma=0.5, flux=50.0).shear(shear)
+    matrix = shear.getMatrix()
+    cov = 0.25 * matrix @ matrix.T
+    image = gal.drawImage(nx=81, ny=81, wcs=_wcs(jacobian), method="no_pixel").array
+    record = measure_wmom(image, _wcs(jacobian), 4.0, (40.0, 40.0), weight_fwhm=1.2)
+    eff = _weighted_gaussian(cov, 1.2)
+    T = eff[0, 0] + eff[1, 1]
+    assert record["flags"][0] == 0
+    assert record["T"][0] == pytest.approx(T, rel=1e-6)
+    assert record["g1"][0] == pytest.approx((eff[0, 0] - eff[1, 1]) / T, rel=1e-6)
+    assert record["g2"][0] == pytest.approx(2.0 * eff[0, 1] / T, rel=1e-6)
+    flux = 50.0 * np.sqrt(np.linalg.det(eff) / np.linalg.det(cov))
+    assert record["flux"][0] == pytest.approx(flux, rel=1e-6)
+    assert record["s2n"][0] > 0 and (record["x"][0], record["y"][0]) == (40.0, 40.0)
+
+
+def test_wmom_metacal_response_of_round_gaussian_matches_expectation():
+    # Metacal image: Gaussian of variance s^2 = sigma_g^2 + sigma_r^2; with a weight of
+    # variance w^2 the polarisation responds with R = 2 sigma_g^2 w^2 / (s^2 (s^2 + w^2)).
+    psf = galsim.Gaussian(fwhm=0.8)
+    sigma_gal, fwhm = 0.4, 1.2
+    image = _observe(galsim.Gaussian(sigma=sigma_gal, flux=100.0), psf, SKEW_JACOBIAN, 64)
+    psf_image = _psf_stamp(psf, SKEW_JACOBIAN)
+    result = measure_metacal(
+        image, psf_image, None, SKEW_JACOBIAN, 0.0, guess_centroid=(31.5, 31.5),
+        shape="wmom", weight_fwhm=fwhm,
+    )  # fmt: skip
+    sigma_r = reconvolution_psf(psf_image, SKEW_JACOBIAN).sigma
+    s2 = sigma_gal**2 + sigma_r**2
+    w2 = (fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))) ** 2
+    expected = 2.0 * sigma_gal**2 * w2 / (s2 * (s2 + w2))
+    R = shear_response(result).R
+    assert R[0, 0] == pytest.approx(expected, rel=2e-3)
+    assert R[1, 1] == pytest.approx(expected, rel=2e-3)
+    assert abs(R[0, 1]) < 1e-4 and abs(R[1, 0]) < 1e-4
+    noshear = result["noshear"][0]
+    assert noshear["flags"] == 0 and noshear["T"] < noshear["T"] / noshear["T_psf"] * 10
+    assert noshear["T"] / noshear["T_psf"] > 1.0  # both in the same weight
+    with pytest.raises(MetacalError, match="shape"):
+        measure_metacal(image, psf_image, None, SKEW_JACOBIAN, 0.0, shape="ksigma")

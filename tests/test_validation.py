@@ -20,7 +20,8 @@ from cellcoadd.pipelines import (
     validate_shear,
 )
 from cellcoadd.pipelines.shear_validation import RESULT_KEYS, PairCatalogue, measure_pairs
-from cellcoadd.pipelines.stamp_pairs import measure_pair, stamp_cell
+from cellcoadd.pipelines.stamp_pairs import measure_pair
+from cellcoadd.pipelines.validation_settings import stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
 # Nearly noise free: the metacal error per object is ~1.5e-3 / (S/N / 1e4) in m, so a
@@ -44,13 +45,13 @@ def coadd_run():
 def test_coadd_bias_is_small_at_high_snr(coadd_run):
     result = coadd_run
     assert result["n_objects"] == 16 and result["mode"] == "coadd"
-    assert abs(result["m1"]) < 5e-3
+    assert abs(result["m1"]) < 2e-3
     assert abs(result["m1"]) < 3.0 * result["m1_err"] + 1e-4
     # pairing cancels the shape noise in m: without it m1_err would be ~0.2 here
     assert result["m1_err"] < 2e-3
-    for name in ("c1", "c2"):  # additive: limited by the intrinsic shapes (sigma_e = 0.02)
-        assert abs(result[name]) < 0.015
-        assert abs(result[name]) < 3.0 * result[f"{name}_err"]
+    for name in ("c1", "c2"):  # ring partners cancel the intrinsic shapes in c
+        assert abs(result[name]) < 1e-3
+        assert abs(result[name]) < 3.0 * result[f"{name}_err"] + 1e-5
     # every coadd has its 10 epochs, every object passes the paper's cuts at this S/N
     assert result["incomplete_coadds"] == 0
     assert result["n_used"] == result["n_used_plus"] == result["n_used_minus"] == 16
@@ -166,7 +167,7 @@ def test_cli_table_shows_the_paper_value():
     args = ["--mode", "single", "--n-objects", "3", "--snr", "1000", "--quiet"]
     result = CliRunner().invoke(validate_shear_command, args)
     assert result.exit_code == 0, result.output
-    assert "paper, multi-epoch" in result.output and "+0.0004 +- 0.0004" in result.output
+    assert "paper, metacal multi-epoch" in result.output and "+0.0004 +- 0.0004" in result.output
     assert "requirement: |m1| < 0.001" in result.output
 
 
@@ -188,3 +189,64 @@ def test_realistic_snr_bias_is_consistent_with_zero():
     assert abs(result["m1"]) < 3.0 * result["m1_err"]
     assert abs(result["c1"]) < 3.0 * result["c1_err"] and abs(result["c2"]) < 3.0 * result["c2_err"]
     assert result["n_used"] > 0.5 * result["n_objects"]
+
+
+def test_rotated_partners_cancel_the_mean_intrinsic_shape(coadd_run):
+    # Without partners c1 is the mean intrinsic e1 of these 16 galaxies (~5e-3, the
+    # -0.0033 of every row of docs/validation.md at 400 pairs); with them it vanishes.
+    unrotated = validate_shear(
+        "coadd", n_objects=16, snr=HIGH_SNR, seed=21, workers=2, progress=False,
+        rotated_partners=False,
+    )  # fmt: skip
+    assert abs(unrotated["c1"]) > 2e-3
+    assert abs(coadd_run["c1"]) < 3e-4 and abs(coadd_run["c1"]) < 3.0 * coadd_run["c1_err"]
+    assert coadd_run["c1_err"] < 0.1 * unrotated["c1_err"]
+    pairs = coadd_run["measurements"]
+    # partners 2k, 2k + 1: same flux and size, e1 of opposite sign about the shear
+    even, odd = pairs.plus["noshear"][0::2], pairs.plus["noshear"][1::2]
+    np.testing.assert_allclose(even["flux"], odd["flux"], rtol=0.02)
+
+
+def test_wmom_coadd_bias_is_small_at_high_snr():
+    result = validate_shear(
+        "coadd", n_objects=16, snr=HIGH_SNR, seed=21, workers=2, progress=False, shape="wmom"
+    )
+    assert result["settings"]["shape"] == "wmom" and result["n_used"] == 16
+    assert abs(result["m1"]) < 2e-3
+    assert abs(result["m1"]) < 3.0 * result["m1_err"] + 1e-4
+    assert abs(result["c1"]) < 1e-3 and abs(result["c2"]) < 1e-3
+
+
+@pytest.mark.slow
+def test_bfd_coadd_bias_is_consistent_with_zero():
+    # BFD expands the likelihood to second order in the shear, so it needs the shear
+    # signal below the noise (the paper: 5 < S/N < 50): no S/N 10^4 check is possible,
+    # and at S/N 20 sigma(m1) ~ 1.2 / sqrt(N) as for metacal. This only checks that the
+    # chain (moments, noise covariance, templates, prior, selection, pairs) is unbiased
+    # at the ~0.3 level; tighter tests need ~10^6 pairs.
+    result = validate_shear(
+        "coadd", n_objects=40, snr=20.0, seed=3, workers=2, progress=False,
+        method="bfd", bfd_templates=50,
+    )  # fmt: skip
+    assert result["method"] == "bfd" and result["incomplete_coadds"] == 0
+    assert result["n_used"] > 30 and result["n_templates"] == 50
+    assert 10.0 < result["flux_snr_median"] < 40.0
+    assert abs(result["m1"]) < 3.0 * result["m1_err"] and result["m1_err"] < 0.5
+    for name in ("c1", "c2"):
+        assert abs(result[name]) < 3.0 * result[f"{name}_err"]
+
+
+def test_cli_refuses_multi_epoch_and_shape_with_bfd():
+    result = CliRunner().invoke(validate_shear_command, ["--mode", "multi-epoch"])
+    assert result.exit_code != 0 and "not yet available" in result.output
+    result = CliRunner().invoke(validate_shear_command, ["--method", "bfd", "--shape", "wmom"])
+    assert result.exit_code != 0 and "metacal only" in result.output
+
+
+def test_cli_json_with_wmom_shape():
+    args = ["--shape", "wmom", "--n-objects", "2", "--snr", "1000", "--json", "--quiet"]
+    result = CliRunner().invoke(validate_shear_command, args)
+    assert result.exit_code == 0, result.output
+    output = json.loads(result.output)
+    assert output["method"] == "metacal" and output["settings"]["shape"] == "wmom"
+    assert output["settings"]["rotated_partners"] is True

@@ -28,8 +28,8 @@ _EXPORTS: dict[str, str] = {
     "summarize": "cellcoadd.pipelines.shear_validation",
     "validate_shear": "cellcoadd.pipelines.shear_validation",
     "PairMeasurement": "cellcoadd.pipelines.stamp_pairs",
-    "ValidationSettings": "cellcoadd.pipelines.stamp_pairs",
-    "largest_cell_inner": "cellcoadd.pipelines.stamp_pairs",
+    "ValidationSettings": "cellcoadd.pipelines.validation_settings",
+    "largest_cell_inner": "cellcoadd.pipelines.validation_settings",
     "measure_pair": "cellcoadd.pipelines.stamp_pairs",
 }
 
@@ -63,9 +63,5 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         summarize,
         validate_shear,
     )
-    from cellcoadd.pipelines.stamp_pairs import (
-        PairMeasurement,
-        ValidationSettings,
-        largest_cell_inner,
-        measure_pair,
-    )
+    from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
+    from cellcoadd.pipelines.validation_settings import ValidationSettings, largest_cell_inner

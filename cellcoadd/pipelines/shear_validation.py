@@ -25,22 +25,23 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
 from cellcoadd.pipelines.stamp_pairs import (
-    Mode,
     PairMeasurement,
-    ValidationSettings,
+    bfd_noise_sigma,
+    bfd_templates,
     measure_pair,
-    stamp_cell,
 )
+from cellcoadd.pipelines.validation_settings import Method, Mode, ValidationSettings, stamp_cell
+from cellcoadd.shear import bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
-from cellcoadd.shear.shapes import SHAPE_DTYPE
+from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
 #: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1. The paper's
@@ -50,6 +51,13 @@ PAPER_TABLE1: dict[str, tuple[float, float]] = {
     "single": (0.0004, 0.0004),
 }
 PAPER_LABELS: dict[str, str] = {"coadd": "coadd", "single": "multi-epoch"}
+#: Every row of the paper's Table 1, keyed by (method, mode).
+PAPER_TABLE1_ROWS: dict[tuple[str, str], tuple[float, float]] = {
+    ("bfd", "coadd"): (0.0012, 0.0007),
+    ("bfd", "single"): (-0.0014, 0.0007),
+    ("metacal", "coadd"): PAPER_TABLE1["coadd"],
+    ("metacal", "single"): PAPER_TABLE1["single"],
+}
 #: Requirement on |m| of ambitious surveys quoted by the paper.
 M_REQUIREMENT = 1.0e-3
 
@@ -65,6 +73,7 @@ RESULT_KEYS: tuple[str, ...] = (
     "n_used",
     "cpu_seconds",
     "mode",
+    "method",
     "settings",
 )
 
@@ -80,7 +89,8 @@ class PairCatalogue:
     plus, minus : dict of str to ndarray
         For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
         ``+g`` and ``-g`` members, aligned with ``index`` (what
-        :func:`~cellcoadd.shear.multiplicative_bias` takes).
+        :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
+        :data:`~cellcoadd.pipelines.stamp_pairs.BFD_DTYPE` rows under ``"bfd"``.
     noise_sigma, snr, n_inputs, cpu_seconds : ndarray
         Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
     """
@@ -99,10 +109,11 @@ class PairCatalogue:
     @classmethod
     def from_pairs(cls, pairs: Sequence[PairMeasurement]) -> PairCatalogue:
         """Stack single-object measurements."""
+        keys = list(pairs[0].plus) if pairs else list(METACAL_TYPES)
         return cls(
             index=np.array([pair.index for pair in pairs], dtype=np.int64),
-            plus={t: _rows([pair.plus[t] for pair in pairs]) for t in METACAL_TYPES},
-            minus={t: _rows([pair.minus[t] for pair in pairs]) for t in METACAL_TYPES},
+            plus={t: _rows([pair.plus[t] for pair in pairs]) for t in keys},
+            minus={t: _rows([pair.minus[t] for pair in pairs]) for t in keys},
             noise_sigma=np.array([pair.noise_sigma for pair in pairs], dtype=np.float64),
             snr=np.array([pair.snr for pair in pairs], dtype=np.float64),
             n_inputs=np.array([pair.n_inputs for pair in pairs], dtype=np.int64),
@@ -114,16 +125,15 @@ class PairCatalogue:
         """Join catalogues (e.g. chunks or index ranges of a run), ordered by index."""
         index = np.concatenate([c.index for c in catalogues])
         order = np.argsort(index, kind="stable")
+        keys = list(catalogues[0].plus)
 
         def join(name: str) -> np.ndarray:
             return np.concatenate([getattr(c, name) for c in catalogues])[order]
 
         return cls(
             index=index[order],
-            plus={t: np.concatenate([c.plus[t] for c in catalogues])[order] for t in METACAL_TYPES},
-            minus={
-                t: np.concatenate([c.minus[t] for c in catalogues])[order] for t in METACAL_TYPES
-            },
+            plus={t: np.concatenate([c.plus[t] for c in catalogues])[order] for t in keys},
+            minus={t: np.concatenate([c.minus[t] for c in catalogues])[order] for t in keys},
             noise_sigma=join("noise_sigma"),
             snr=join("snr"),
             n_inputs=join("n_inputs"),
@@ -201,9 +211,16 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     """Biases and diagnostics of a catalogue of pairs (the result of :func:`validate_shear`)."""
     if len(catalogue) < 2:
         raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
+    if settings.method == "bfd":
+        return _summarize_bfd(settings, catalogue)
     plus, minus = catalogue.plus, catalogue.minus
     bias = multiplicative_bias(
-        plus, minus, true_g=settings.sim.shear[0], step=settings.step, selection=PAPER_CUTS
+        plus,
+        minus,
+        true_g=settings.sim.shear[0],
+        step=settings.step,
+        selection=PAPER_CUTS,
+        group=_group(settings, catalogue),
     )
     kept_plus = PAPER_CUTS(plus["noshear"])
     kept_minus = PAPER_CUTS(minus["noshear"])
@@ -218,6 +235,7 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
         "n_used_minus": int(kept_minus.sum()),
         "cpu_seconds": float(catalogue.cpu_seconds.sum()),
         "mode": settings.mode,
+        "method": settings.method,
         "settings": settings.model_dump(mode="json"),
         "R11": float(response.R[0, 0]),
         "R22": float(response.R[1, 1]),
@@ -227,6 +245,72 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
         "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
         "paper_m1": PAPER_TABLE1[settings.mode][0],
         "paper_m1_err": PAPER_TABLE1[settings.mode][1],
+    }
+
+
+def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> int:
+    """Rows removed together by the jackknife: ring partners (indices 2k, 2k + 1)."""
+    index = catalogue.index
+    paired = (
+        settings.rotated_partners
+        and len(index) % 2 == 0
+        and len(index) >= 4
+        and np.all(index[::2] % 2 == 0)
+        and np.all(index[1::2] == index[::2] + 1)
+    )
+    return 2 if paired else 1
+
+
+def _summarize_bfd(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
+    """BFD: the template prior for the targets' mean moment covariance, then ``m, c``."""
+    plus, minus = catalogue.plus["bfd"], catalogue.minus["bfd"]
+    good = (plus["flags"] == 0) & (minus["flags"] == 0)
+    if not np.any(good):
+        raise ValueError("no BFD target could be measured")
+    cov_even = np.mean(np.concatenate([plus["cov_even"][good], minus["cov_even"][good]]), axis=0)
+    cov_odd = np.mean(np.concatenate([plus["cov_odd"][good], minus["cov_odd"][good]]), axis=0)
+    start = time.process_time()
+    templates = bfd_templates(settings, bfd_noise_sigma(settings))
+    prior = bfd.TemplatePrior.from_templates(
+        templates, cov_even, cov_odd, snr_range=settings.bfd_snr_range
+    )
+    pqrs = []
+    for member in (plus, minus):
+        pqr = prior.pqr(member["even"])
+        ok = member["flags"] == 0
+        pqrs.append(
+            bfd.Pqr(
+                P=np.where(ok, pqr.P, 0.0),
+                Q=pqr.Q,
+                R=pqr.R,
+                log_scale=pqr.log_scale,
+                selected=pqr.selected & ok,
+            )
+        )
+    bias = bfd.paired_bias(
+        pqrs[0], pqrs[1], prior, true_g=settings.sim.shear[0], group=_group(settings, catalogue)
+    )
+    prior_cpu = time.process_time() - start
+    sel_plus, sel_minus = pqrs[0].selected, pqrs[1].selected
+    expected_inputs = settings.sim.n_epochs if settings.mode == "coadd" else 1
+    paper = PAPER_TABLE1_ROWS[("bfd", settings.mode)]
+    return {
+        **bias,
+        "n_objects": len(catalogue),
+        "n_used": int(np.sum(sel_plus & sel_minus)),
+        "n_used_plus": int(sel_plus.sum()),
+        "n_used_minus": int(sel_minus.sum()),
+        "cpu_seconds": float(catalogue.cpu_seconds.sum()) + prior_cpu,
+        "prior_cpu_seconds": prior_cpu,
+        "mode": settings.mode,
+        "method": "bfd",
+        "settings": settings.model_dump(mode="json"),
+        "n_templates": len(templates),
+        "flux_snr_median": float(np.median(plus["snr"][good])),
+        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
+        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
+        "paper_m1": paper[0],
+        "paper_m1_err": paper[1],
     }
 
 
@@ -246,14 +330,19 @@ def validate_shear(
     coadd_pixel_scale: float = 0.2,
     reconvolution_psf: ReconvolutionKind = "gauss",
     return_measurements: bool = False,
+    method: Method = "metacal",
+    shape: Literal["admom", "wmom"] = "admom",
+    wmom_fwhm: float = WMOM_FWHM,
+    rotated_partners: bool = True,
+    bfd_templates: int = 100,
 ) -> dict[str, Any]:
-    """Measure the multiplicative and additive shear biases of metacal on cell coadds.
+    """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
     Parameters
     ----------
     mode : {"coadd", "single"}
-        ``"coadd"``: metacal on the cell coadd of each object's epochs, built with
-        :func:`cellcoadd.builder.build_cell`. ``"single"``: metacal on the first epoch alone.
+        ``"coadd"``: measure the cell coadd of each object's epochs, built with
+        :func:`cellcoadd.builder.build_cell`. ``"single"``: the first epoch alone.
     n_objects : int
         Number of objects (each simulated as a +g / -g pair).
     snr : float or (float, float), optional
@@ -279,11 +368,23 @@ def validate_shear(
     coadd_pixel_scale : float
         Coadd pixel scale, arcsec (0.2, the LSST-like default of cellcoadd; 0.27 puts
         the coadd on the exposures' nominal scale); the cell size follows
-        (:func:`~cellcoadd.pipelines.stamp_pairs.largest_cell_inner`).
+        (:func:`~cellcoadd.pipelines.validation_settings.largest_cell_inner`).
     reconvolution_psf : {"gauss", "fitgauss", "dilate"}
         Metacal reconvolution PSF.
     return_measurements : bool
         Also return the per-object :class:`PairCatalogue` under ``"measurements"``.
+    method : {"metacal", "bfd"}
+        Shear method (BFD: noise level fixed per run, see
+        :mod:`cellcoadd.pipelines.stamp_pairs`).
+    shape : {"admom", "wmom"}
+        Metacal shape: adaptive moments or fixed-weight Gaussian moments.
+    wmom_fwhm : float
+        FWHM (arcsec) of the ``wmom`` weight.
+    rotated_partners : bool
+        Make objects ``2k + 1`` the 90-degree-rotated partners of objects ``2k`` (the mean
+        intrinsic shape then cancels in ``c`` for an even ``n_objects``).
+    bfd_templates : int
+        Deep templates of the BFD prior.
 
     Returns
     -------
@@ -306,6 +407,11 @@ def validate_shear(
         reconvolution_psf=reconvolution_psf,
         sim=sim or SimConfig(),
         coadd_pixel_scale=coadd_pixel_scale,
+        method=method,
+        shape=shape,
+        wmom_fwhm=wmom_fwhm,
+        rotated_partners=rotated_partners,
+        bfd_templates=bfd_templates,
     )
     start = time.perf_counter()
     measured = run_pairs(
@@ -324,36 +430,50 @@ def validate_shear(
     return result
 
 
+def _label(result: dict[str, Any]) -> str:
+    method = result.get("method", "metacal")
+    name = "metacal" if method == "metacal" else "BFD"
+    shape = result["settings"].get("shape", "admom")
+    if method == "metacal" and shape != "admom":
+        name += f" {shape}"
+    return f"{name} {result['mode']}"
+
+
 def format_bias_table(results: Sequence[dict[str, Any]]) -> str:
     """A text table of :func:`validate_shear` results beside the paper's Table 1.
 
-    One line per result, followed by the paper's metacalibration value for that mode.
+    One line per result, followed by the paper's value for that method and mode.
     """
-    header = f"{'sample':<30} {'m1':>20} {'c1':>20} {'c2':>20} {'N used/N':>13} {'CPU s':>9}"
+    header = f"{'sample':<38} {'m1':>20} {'c1':>20} {'c2':>20} {'N used/N':>13} {'CPU s':>9}"
     lines = [
-        "Multiplicative bias on g1, metacalibration (g_true = 0.02; cuts S/N > 10, T/T_psf > 0.5)",
+        "Multiplicative bias on g1 (g_true = 0.02; metacal cuts S/N > 10, T/T_psf > 0.5; "
+        "BFD flux 5 < S/N < 50)",
         header,
         "-" * len(header),
     ]
     for result in results:
         mode = result["mode"]
+        method = result.get("method", "metacal")
         snr = result["settings"].get("snr")
         snr_text = "sim noise" if snr is None else _snr_text(snr)
-        label = f"ours, {mode} ({snr_text})"
+        label = f"ours, {_label(result)} ({snr_text})"
         lines.append(
-            f"{label:<30} {_pm(result['m1'], result['m1_err']):>20} "
+            f"{label:<38} {_pm(result['m1'], result['m1_err']):>20} "
             f"{_pm(result['c1'], result['c1_err']):>20} "
             f"{_pm(result['c2'], result['c2_err']):>20} "
             f"{str(result['n_used']) + '/' + str(result['n_objects']):>13} "
             f"{result['cpu_seconds']:>9.0f}"
         )
-        paper_m, paper_err = PAPER_TABLE1[mode]
-        lines.append(f"{'paper, ' + PAPER_LABELS[mode]:<30} {_pm(paper_m, paper_err):>20}")
+        paper_m, paper_err = PAPER_TABLE1_ROWS[(method, mode)]
+        paper_name = "metacal" if method == "metacal" else "BFD"
+        lines.append(
+            f"{'paper, ' + paper_name + ' ' + PAPER_LABELS[mode]:<38} {_pm(paper_m, paper_err):>20}"
+        )
     lines.append(f"requirement: |m1| < {M_REQUIREMENT:g}")
     if any(result["mode"] == "single" for result in results):
         lines.append(
-            "note: the paper's multi-epoch row fits all epochs jointly; "
-            "ours measures the first epoch alone"
+            "note: the paper's multi-epoch rows fit all epochs jointly; "
+            "ours measure the first epoch alone"
         )
     return "\n".join(lines)
 
@@ -366,15 +486,3 @@ def _snr_text(snr: Sequence[float]) -> str:
     low, high = snr
     return f"S/N {low:g}" if low == high else f"S/N {low:g}-{high:g}"
 
-
-__all__ = [
-    "M_REQUIREMENT",
-    "PairCatalogue",
-    "PAPER_TABLE1",
-    "RESULT_KEYS",
-    "format_bias_table",
-    "measure_pairs",
-    "run_pairs",
-    "summarize",
-    "validate_shear",
-]

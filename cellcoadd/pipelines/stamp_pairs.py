@@ -21,6 +21,22 @@ run with seed ``s``:
    the object through the epoch's local WCS (pixel response included) and its own noise
    realization (same ``sigma``, independent of the image noise).
 
+**Ring partners** (``rotated_partners``, default): objects ``2k`` and ``2k + 1`` are the
+same galaxy, PSFs, shifts and WCSs with the intrinsic ellipticity of ``2k + 1`` turned by
+90 degrees (``e -> -e``), so the mean intrinsic shape cancels in ``c`` over each partner
+pair; both have the target S/N of object ``2k`` and their own noise fields and coadd noise
+realizations (keyed by their own index).
+
+**Methods.** ``method="metacal"`` measures metacalibration shapes, adaptive moments
+(``shape="admom"``) or moments in a fixed Gaussian weight of FWHM ``wmom_fwhm``
+(``shape="wmom"``). ``method="bfd"`` measures the BFD moments of the coadd (or the first
+epoch) with their covariance from the cell's noise realization (white noise of the known
+level in single mode); the template prior and the shear are made from all the objects
+(:func:`bfd_templates`, :func:`cellcoadd.pipelines.shear_validation.summarize`). BFD needs
+one moment covariance for all targets, so its noise level is the same for every object:
+``sigma = S_ref / snr``, ``S_ref`` the median ``sqrt(sum I^2)`` of the template sample,
+``snr`` the geometric mean of the target range (the median object has that S/N).
+
 Everything about object ``i`` depends only on ``(s, i)`` and the settings, so any split
 of a run over processes gives identical results.
 """
@@ -28,29 +44,44 @@ of a run over processes gives identical results.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd.builder import build_cell
-from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.config import SkyMapConfig
-from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
-from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.pipelines.validation_settings import (
+    METHODS,
+    MODES,
+    ValidationSettings,
+    largest_cell_inner,
+    stamp_cell,
+)
+from cellcoadd.shear import bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
 from cellcoadd.shear.shapes import empty_record
-from cellcoadd.sim.config import SimConfig
 from cellcoadd.sim.stamps import StampObject, simulate_object
 
-Mode = Literal["coadd", "single"]
-MODES: tuple[str, ...] = ("coadd", "single")
+#: One BFD measurement per row: ``flags`` (0: good; :data:`BFD_NOT_CENTRED`,
+#: :data:`BFD_FAILED`, :data:`NO_COADD`), the even moments ``F, R, E1, E2``, their
+#: covariance, the odd-moment covariance, the centre offset (arcsec) and the flux S/N.
+BFD_DTYPE = np.dtype(
+    [
+        ("flags", "i4"),
+        ("even", "f8", (4,)),
+        ("cov_even", "f8", (4, 4)),
+        ("cov_odd", "f8", (2, 2)),
+        ("centre", "f8", (2,)),
+        ("snr", "f8"),
+    ]
+)
+BFD_NOT_CENTRED = 1
+BFD_FAILED = 2
 
 #: ``flags`` bit of a measurement that could not be made because the coadd is empty.
 NO_COADD = 1 << 8
@@ -59,147 +90,9 @@ NO_COADD = 1 << 8
 _EPOCH_NOISE_STREAM = 1
 _SINGLE_NOISE_STREAM = 2
 _SNR_STREAM = 3
-
-
-class ValidationSettings(BaseModel):
-    """Everything that fixes the result of a shear-bias validation run (frozen).
-
-    Parameters
-    ----------
-    mode : {"coadd", "single"}
-        Measure the cell coadd of all epochs, or the first epoch alone.
-    seed : int
-        Seed of the run; object ``i`` depends only on ``(seed, i)``.
-    snr : (float, float), optional
-        Target optimal S/N range (``lo == hi`` for a fixed S/N); None keeps the
-        simulation's noise level ``sim.noise_sigma``.
-    step : float
-        Metacalibration shear step.
-    reconvolution_psf : {"gauss", "fitgauss", "dilate"}
-        Metacalibration reconvolution PSF (see :func:`cellcoadd.shear.reconvolution_psf`).
-    sim : SimConfig
-        Stamp simulation settings (paper defaults: 10 epochs of 48 x 48 pixels at
-        0.27 arcsec, ``g = (0.02, 0)``).
-    coadd_pixel_scale : float
-        Pixel scale of the coadd cell, arcsec.
-    cell_inner, cell_border : int
-        Cell inner size (odd, so the cell-centre pixel sits exactly on the objects) and
-        border, coadd pixels. The outer box plus the Lanczos-3 reach must lie inside every
-        epoch's stamp, or epochs are rejected (reported in the results).
-    build : BuildConfig
-        Builder settings (at least one noise realization: metacal needs it).
-    noise_index : int
-        Which coadd noise realization feeds the metacal noise correction.
-    """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    mode: Mode = "coadd"
-    seed: int = Field(0, ge=0)
-    snr: tuple[float, float] | None = None
-    step: float = Field(0.01, gt=0.0, lt=0.1)
-    reconvolution_psf: Literal["gauss", "fitgauss", "dilate"] = "gauss"
-    sim: SimConfig = SimConfig()
-    coadd_pixel_scale: float = Field(0.2, gt=0.0, description="arcsec/pixel")
-    cell_inner: int = Field(None, gt=0, description="coadd pixels")  # type: ignore[assignment]
-    cell_border: int = Field(5, ge=0, description="coadd pixels")
-    build: BuildConfig = BuildConfig(n_noise=1, psf_size=35)
-    noise_index: int = Field(0, ge=0)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _default_cell(cls, data: object) -> object:
-        if isinstance(data, dict) and data.get("cell_inner") is None:
-            sim = data.get("sim")
-            sim = SimConfig() if sim is None else SimConfig.model_validate(sim)
-            data = dict(data)
-            data["cell_inner"] = largest_cell_inner(
-                sim, data.get("coadd_pixel_scale", 0.2), data.get("cell_border", 5)
-            )
-        return data
-
-    @field_validator("snr", mode="before")
-    @classmethod
-    def _snr_pair(cls, value: object) -> object:
-        if value is None:
-            return None
-        if isinstance(value, (tuple, list)):
-            return tuple(value) * 2 if len(value) == 1 else value
-        return (value, value)  # a single number: fixed S/N
-
-    @model_validator(mode="after")
-    def _check(self) -> ValidationSettings:
-        if self.snr is not None and not 0.0 < self.snr[0] <= self.snr[1]:
-            raise ValueError(f"snr must satisfy 0 < lo <= hi, got {self.snr}")
-        if self.cell_inner % 2 == 0:
-            raise ValueError(
-                f"cell_inner must be odd so the cell centre falls on the objects, "
-                f"got {self.cell_inner}"
-            )
-        if self.build.n_noise <= self.noise_index:
-            raise ValueError(
-                f"build.n_noise = {self.build.n_noise} has no noise realization "
-                f"{self.noise_index}: metacal needs one"
-            )
-        if self.sim.shear[0] == 0.0 or self.sim.shear[1] != 0.0:
-            raise ValueError(
-                f"the bias is measured on g1: sim.shear must be (g, 0) with g != 0, "
-                f"got {self.sim.shear}"
-            )
-        if self.build.psf_size > self.cell_inner + 2 * self.cell_border:
-            raise ValueError("build.psf_size exceeds the cell outer box")
-        return self
-
-    def skymap_config(self) -> SkyMapConfig:
-        """One tract of one patch of one cell, centred on the stamp objects."""
-        return SkyMapConfig(
-            pixel_scale=self.coadd_pixel_scale,
-            cell_inner=self.cell_inner,
-            cell_border=self.cell_border,
-            cells_per_patch=1,
-            patches_per_tract=1,
-            patch_border_cells=0,
-        )
-
-
-def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: int = 5) -> int:
-    """Largest odd cell inner size whose outer box fits every epoch stamp with Lanczos-3.
-
-    Lanczos-3 taps run from ``floor(x) - 2`` to ``floor(x) + 3``, so every outer-box pixel
-    centre must map to ``2 <= x < stamp_size - 3`` in each epoch; the object sits at
-    ``(stamp_size - 1) / 2`` plus a shift of up to ``max_shift``. The outer box's
-    half-width, in exposure pixels, is stretched by up to ``|ds| + |eta1| + |eta2|`` by the
-    per-epoch WCS variation; six times the combined standard deviation of those (no
-    rotation) keeps rejections negligible. With rotations the box corner can point
-    anywhere, so a factor ``sqrt(2)`` more is kept. Defaults: 41 at 0.2 arcsec, 29 at
-    0.27 arcsec.
-
-    Raises
-    ------
-    ValueError
-        If not even a one-pixel inner region fits.
-    """
-    # taps floor(x) - (w - 1) .. floor(x) + w must stay in [0, stamp_size)
-    reach = (sim.stamp_size - 1) / 2.0 - sim.max_shift - (KERNEL_HALF_WIDTH - 1)
-    spread = np.sqrt(sim.wcs.scale_sigma**2 + 2.0 * sim.wcs.shear_sigma**2)
-    stretch = (1.0 + 6.0 * spread) * (np.sqrt(2.0) if sim.wcs.rotate else 1.0)
-    half_outer = int(np.floor(reach / stretch * sim.pixel_scale / coadd_pixel_scale - 1e-9))
-    inner = 2 * (half_outer - cell_border) + 1
-    if inner < 1:
-        raise ValueError(
-            f"no cell with a {cell_border}-pixel border at {coadd_pixel_scale} arcsec/pixel "
-            f"fits in a {sim.stamp_size}-pixel stamp"
-        )
-    return inner
-
-
-def stamp_cell(settings: ValidationSettings) -> Cell:
-    """Cell ``(0, 0)`` of the one-cell sky map centred on the objects; its centre pixel
-    ``(nx // 2, ny // 2)`` of the outer box is exactly at ``(sim.ra, sim.dec)``.
-
-    One cell serves every object, since they all share the sky position."""
-    skymap = SkyMap.from_centers([(settings.sim.ra, settings.sim.dec)], settings.skymap_config())
-    return skymap[0].cell(0, 0)
+_TEMPLATE_STREAM = 4
+#: Template objects used for the BFD noise level (median signal).
+_REFERENCE_TEMPLATES = 50
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,7 +105,8 @@ class PairMeasurement:
         Object index.
     plus, minus : dict of str to ndarray
         For each metacal type, a length-1 array of
-        :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE`.
+        :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE`; for BFD, ``{"bfd": ...}`` a length-1
+        array of :data:`BFD_DTYPE`.
     noise_sigma : float
         Pixel noise standard deviation of the epochs, counts.
     snr : float
@@ -236,19 +130,60 @@ def _generator(settings: ValidationSettings, index: int, stream: int) -> np.rand
     return np.random.default_rng(np.random.SeedSequence([settings.seed, int(index), stream]))
 
 
+def _partner(settings: ValidationSettings, index: int) -> tuple[int, bool]:
+    """The object whose galaxy ``index`` shows, and whether its shape is turned by 90 deg."""
+    if settings.rotated_partners:
+        return index - index % 2, index % 2 == 1
+    return index, False
+
+
 def _target_snr(settings: ValidationSettings, index: int) -> float:
     if settings.snr is None:
         return float("nan")
     low, high = settings.snr
-    return float(_generator(settings, index, _SNR_STREAM).uniform(low, high))
+    base, _ = _partner(settings, index)
+    return float(_generator(settings, base, _SNR_STREAM).uniform(low, high))
+
+
+def _measured_signal(settings: ValidationSettings, obj: StampObject) -> float:
+    epochs = obj.exposures[:1] if settings.mode == "single" else obj.exposures
+    return float(np.sqrt(sum(np.sum(np.square(e.image)) for e in epochs)))
 
 
 def _noise_sigma(settings: ValidationSettings, obj: StampObject, snr: float) -> float:
     if not np.isfinite(snr):
         return float(settings.sim.noise_sigma)
-    epochs = obj.exposures[:1] if settings.mode == "single" else obj.exposures
-    signal = float(np.sqrt(sum(np.sum(np.square(e.image)) for e in epochs)))
-    return signal / snr
+    if settings.method == "bfd":
+        return bfd_noise_sigma(settings)
+    return _measured_signal(settings, obj) / snr
+
+
+def template_seed(settings: ValidationSettings) -> int:
+    """Seed of the BFD template sample (independent of the targets' objects)."""
+    state = np.random.SeedSequence([settings.seed, _TEMPLATE_STREAM]).generate_state(1)
+    return int(state[0])
+
+
+def _template_object(settings: ValidationSettings, index: int) -> StampObject:
+    return simulate_object(
+        settings.sim, template_seed(settings), index, (0.0, 0.0), add_noise=False
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _reference_signal(settings_json: str) -> float:
+    settings = ValidationSettings.model_validate_json(settings_json)
+    n = min(_REFERENCE_TEMPLATES, settings.bfd_templates)
+    return float(np.median([_measured_signal(settings, _template_object(settings, j))
+                            for j in range(n)]))  # fmt: skip
+
+
+def bfd_noise_sigma(settings: ValidationSettings) -> float:
+    """The pixel noise of every object of a BFD run (see the module docstring)."""
+    if settings.snr is None:
+        return float(settings.sim.noise_sigma)
+    reference = _reference_signal(settings.model_dump_json())
+    return reference / float(np.sqrt(settings.snr[0] * settings.snr[1]))
 
 
 def _with_noise(obj: StampObject, noise: np.ndarray, sigma: float) -> list[Exposure]:
@@ -258,8 +193,41 @@ def _with_noise(obj: StampObject, noise: np.ndarray, sigma: float) -> list[Expos
     ]
 
 
-def _failed(flags: int) -> dict[str, np.ndarray]:
+def _failed(settings: ValidationSettings, flags: int) -> dict[str, np.ndarray]:
+    if settings.method == "bfd":
+        record = np.zeros(1, dtype=BFD_DTYPE)
+        record["flags"] = flags
+        return {"bfd": record}
     return {name: empty_record(flags) for name in METACAL_TYPES}
+
+
+def _bfd_record(moments: bfd.Moments | None) -> dict[str, np.ndarray]:
+    record = np.zeros(1, dtype=BFD_DTYPE)
+    if moments is None:
+        record["flags"] = BFD_FAILED
+        return {"bfd": record}
+    record["flags"] = 0 if moments.converged else BFD_NOT_CENTRED
+    record["even"] = moments.even
+    if moments.cov_even is not None and moments.cov_odd is not None:
+        record["cov_even"] = moments.cov_even
+        record["cov_odd"] = moments.cov_odd
+    record["centre"] = moments.centre
+    record["snr"] = moments.snr
+    return {"bfd": record}
+
+
+def _bfd_moments(
+    settings: ValidationSettings, image: np.ndarray, psf: np.ndarray, jacobian: np.ndarray,
+    centre: tuple[float, float], **noise: object,
+) -> dict[str, np.ndarray]:  # fmt: skip
+    try:
+        moments = bfd.bfd_moments(
+            image, psf, jacobian, weight=bfd.KSigmaWeight(sigma=settings.bfd_sigma),
+            centre=centre, **noise,  # type: ignore[arg-type]
+        )  # fmt: skip
+    except bfd.BfdError:
+        return _bfd_record(None)
+    return _bfd_record(moments)
 
 
 def _measure_coadd(
@@ -267,9 +235,15 @@ def _measure_coadd(
 ) -> tuple[dict[str, np.ndarray], int]:
     coadd = build_cell(cell, exposures, settings.build, seed=settings.seed)
     if coadd.is_empty:
-        return _failed(NO_COADD), 0
+        return _failed(settings, NO_COADD), 0
     obs = to_observation(coadd, noise_index=settings.noise_index)
     jac = obs["jacobian"]
+    if settings.method == "bfd":
+        measured = _bfd_moments(
+            settings, obs["image"], obs["psf"]["image"], observation_jacobian(obs),
+            (jac["col0"], jac["row0"]), noise_images=[obs["noise"]],
+        )  # fmt: skip
+        return measured, coadd.n_used
     result = measure_metacal(
         obs["image"],
         obs["psf"]["image"],
@@ -279,6 +253,8 @@ def _measure_coadd(
         step=settings.step,
         psf=settings.reconvolution_psf,
         guess_centroid=(jac["col0"], jac["row0"]),
+        shape=settings.shape,
+        weight_fwhm=settings.wmom_fwhm,
     )
     return result, coadd.n_used
 
@@ -297,6 +273,12 @@ def _measure_single(
     settings: ValidationSettings, obj: StampObject, exposure: Exposure, sigma: float
 ) -> dict[str, np.ndarray]:
     x, y = obj.epochs[0].position
+    if settings.method == "bfd":
+        centre = (int(round(x)), int(round(y)))
+        return _bfd_moments(
+            settings, exposure.image, epoch_psf_image(exposure, *centre, settings.build.psf_size),
+            exposure.local_jacobian(*centre), centre, noise_variance=sigma**2,
+        )  # fmt: skip
     noise = sigma * _generator(settings, obj.index, _SINGLE_NOISE_STREAM).standard_normal(
         exposure.shape
     )
@@ -309,7 +291,66 @@ def _measure_single(
         step=settings.step,
         psf=settings.reconvolution_psf,
         guess_centroid=(x, y),
+        shape=settings.shape,
+        weight_fwhm=settings.wmom_fwhm,
     )
+
+
+def _as_object(obj: StampObject, index: int) -> StampObject:
+    """``obj`` as object ``index`` (its exposures' detector, which keys the builder's noise
+    realizations)."""
+    if obj.index == index:
+        return obj
+    exposures = [dataclasses.replace(e, detector=int(index)) for e in obj.exposures]
+    return dataclasses.replace(obj, index=int(index), exposures=exposures)
+
+
+def bfd_templates(settings: ValidationSettings, sigma: float) -> list[bfd.KData]:
+    """Fourier data of the BFD prior's deep templates.
+
+    ``settings.bfd_templates`` objects of an independent sample (:func:`template_seed`),
+    simulated with the run's settings but unsheared, with pixel noise ``sigma / 100``,
+    coadded into the stamp cell by the builder (``coadd`` mode) or taken from their first
+    epoch (``single`` mode), exactly as the targets; templates that cannot be measured
+    are skipped.
+    """
+    cell = stamp_cell(settings) if settings.mode == "coadd" else None
+    weight = bfd.KSigmaWeight(sigma=settings.bfd_sigma)
+    size = settings.sim.stamp_size
+    seed = template_seed(settings)
+    out = []
+    for j in range(settings.bfd_templates):
+        obj = _template_object(settings, j)
+        rng = np.random.default_rng(np.random.SeedSequence([seed, j, _EPOCH_NOISE_STREAM]))
+        noise = rng.standard_normal((len(obj.exposures), size, size))
+        exposures = _with_noise(obj, noise, sigma / 100.0)
+        try:
+            if cell is not None:
+                coadd = build_cell(cell, exposures, settings.build, seed=seed)
+                if coadd.is_empty:
+                    continue
+                obs = to_observation(coadd, noise_index=settings.noise_index)
+                jac = obs["jacobian"]
+                data = bfd.fourier_data(
+                    obs["image"], obs["psf"]["image"], observation_jacobian(obs),
+                    weight=weight, centre=(jac["col0"], jac["row0"]),
+                )  # fmt: skip
+            else:
+                x, y = obj.epochs[0].position
+                centre = (int(round(x)), int(round(y)))
+                exposure = exposures[0]
+                psf = epoch_psf_image(exposure, *centre, settings.build.psf_size)
+                data = bfd.fourier_data(
+                    exposure.image, psf, exposure.local_jacobian(*centre), weight=weight,
+                    centre=centre,
+                )  # fmt: skip
+        except bfd.BfdError:
+            continue
+        if bfd.measure_moments(data).converged:
+            out.append(data)
+    if not out:
+        raise ValueError("no usable BFD template")
+    return out
 
 
 def measure_pair(
@@ -324,8 +365,16 @@ def measure_pair(
     if settings.mode == "coadd" and cell is None:
         cell = stamp_cell(settings)
     g1, g2 = settings.sim.shear
-    plus = simulate_object(settings.sim, settings.seed, index, (g1, g2), add_noise=False)
-    minus = simulate_object(settings.sim, settings.seed, index, (-g1, -g2), add_noise=False)
+    base, turn = _partner(settings, index)
+    plus, minus = (
+        _as_object(
+            simulate_object(
+                settings.sim, settings.seed, base, g, add_noise=False, rotate_shape=turn
+            ),
+            index,
+        )
+        for g in ((g1, g2), (-g1, -g2))
+    )
     snr = _target_snr(settings, index)
     sigma = _noise_sigma(settings, plus, snr)
     size = settings.sim.stamp_size
@@ -354,10 +403,14 @@ def measure_pair(
 
 
 __all__ = [
+    "BFD_DTYPE",
+    "METHODS",
     "MODES",
     "NO_COADD",
     "PairMeasurement",
     "ValidationSettings",
+    "bfd_noise_sigma",
+    "bfd_templates",
     "epoch_psf_image",
     "largest_cell_inner",
     "measure_pair",

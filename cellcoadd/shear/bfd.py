@@ -43,7 +43,7 @@ from cellcoadd.shear.bfd_moments import (
     moment_coefficients,
     noise_power,
 )
-from cellcoadd.shear.bfd_prior import Pqr, TemplatePrior, estimate_shear
+from cellcoadd.shear.bfd_prior import Pqr, TemplatePrior, estimate_shear, paired_bias
 
 __all__ = [
     "EVEN_NAMES",
@@ -62,4 +62,5 @@ __all__ = [
     "measure_moments",
     "moment_coefficients",
     "noise_power",
+    "paired_bias",
 ]

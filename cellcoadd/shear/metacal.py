@@ -49,7 +49,16 @@ import numpy as np
 
 from cellcoadd.errors import MetacalError
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
-from cellcoadd.shear.shapes import MetacalFlags, empty_record, measure_shape, psf_T
+from cellcoadd.shear.shapes import (
+    SHAPE_KINDS,
+    WMOM_FWHM,
+    MetacalFlags,
+    ShapeKind,
+    empty_record,
+    measure_shape,
+    measure_wmom,
+    psf_T,
+)
 
 __all__ = [
     "INTERPOLANT",
@@ -321,13 +330,18 @@ def measure_shapes(
     noise_sigma: float,
     guess_centroid: tuple[float, float] | None = None,
     guess_sigma: float | None = None,
+    shape: ShapeKind = "admom",
+    weight_fwhm: float = WMOM_FWHM,
 ) -> dict[str, np.ndarray]:
-    """Adaptive-moments shapes of each metacal image.
+    """Shapes of each metacal image.
 
-    The ellipticity estimator is the adaptive-moments reduced shear
+    With ``shape="admom"`` the ellipticity estimator is the adaptive-moments reduced shear
     ``g = (a - b) / (a + b) * (cos 2 phi, sin 2 phi)`` (GalSim ``observed_shape``) in sky
     coordinates; for a round Gaussian galaxy its response to shear is
-    ``R11 = R22 = T_gal / (T_gal + T_psf) = 1 - T_psf / T``.
+    ``R11 = R22 = T_gal / (T_gal + T_psf) = 1 - T_psf / T``. With ``shape="wmom"`` it is
+    the polarisation of the moments in a fixed round Gaussian weight of FWHM
+    ``weight_fwhm`` arcsec centred on ``guess_centroid`` (:func:`~cellcoadd.shear.shapes.
+    measure_wmom`); ``T`` and ``T_psf`` are then both weighted moments.
 
     Parameters
     ----------
@@ -340,6 +354,10 @@ def measure_shapes(
         0-based pixel position to start from (default: the image centre).
     guess_sigma : float, optional
         Starting Gaussian sigma in pixels (default: 1.5 x that of the reconvolution PSF).
+    shape : {"admom", "wmom"}
+        Adaptive moments, or moments in a fixed Gaussian weight.
+    weight_fwhm : float
+        FWHM (arcsec) of the ``wmom`` weight.
 
     Returns
     -------
@@ -347,9 +365,19 @@ def measure_shapes(
         For each type, a length-1 structured array of :data:`SHAPE_DTYPE`. Failures are
         flagged (:class:`MetacalFlags`), never raised; failed fields are NaN.
     """
+    if shape not in SHAPE_KINDS:
+        raise MetacalError(f"unknown shape {shape!r}; known: {SHAPE_KINDS}")
+    if not (np.isfinite(weight_fwhm) and weight_fwhm > 0.0):
+        raise MetacalError(f"weight_fwhm must be positive (arcsec), got {weight_fwhm}")
     results: dict[str, np.ndarray] = {}
     for name, mc in metacal.items():
         wcs = _galsim_wcs(mc.jacobian)
+        if shape == "wmom":
+            variance = mc.variance_factor * noise_sigma**2
+            record = measure_wmom(mc.image, wcs, variance, guess_centroid, weight_fwhm)
+            record["T_psf"] = psf_T(mc.psf_image, wcs, weight_fwhm)
+            results[name] = record
+            continue
         T_psf = psf_T(mc.psf_image, wcs)
         pixel_area = abs(wcs.pixelArea())
         if guess_sigma is None:
@@ -376,6 +404,8 @@ def measure_metacal(
     psf: ReconvolutionKind = "gauss",
     guess_centroid: tuple[float, float] | None = None,
     guess_sigma: float | None = None,
+    shape: ShapeKind = "admom",
+    weight_fwhm: float = WMOM_FWHM,
 ) -> dict[str, np.ndarray]:
     """Metacal images of ``image`` and their shapes in one call.
 
@@ -391,6 +421,8 @@ def measure_metacal(
         :data:`SHAPE_DTYPE`.
     """
     image, noise_image = _check_arguments(image, psf_image, noise_image, jacobian, step, psf)
+    if shape not in SHAPE_KINDS:
+        raise MetacalError(f"unknown shape {shape!r}; known: {SHAPE_KINDS}")
     psf_sum = float(np.sum(psf_image))
     flag = 0
     if not np.all(np.isfinite(image)) or (
@@ -408,7 +440,7 @@ def measure_metacal(
             flag = MetacalFlags.TRANSFORM_FAILED
     if flag:
         return {name: empty_record(flag) for name in METACAL_TYPES}
-    return measure_shapes(images, noise_sigma, guess_centroid, guess_sigma)
+    return measure_shapes(images, noise_sigma, guess_centroid, guess_sigma, shape, weight_fwhm)
 
 
 def _check_arguments(

@@ -188,15 +188,23 @@ def _calibrated_shear(sums: np.ndarray, step: float) -> np.ndarray:
     return response.shear
 
 
-def _jackknife(
-    terms: np.ndarray, n_blocks: int, estimator: Callable[[np.ndarray], np.ndarray]
+def jackknife(
+    terms: np.ndarray,
+    n_blocks: int,
+    estimator: Callable[[np.ndarray], np.ndarray],
+    group: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Estimate from all objects, and its delete-one-block jackknife standard error."""
+    """Estimate from all objects, and its delete-one-block jackknife standard error.
+
+    Rows ``group k, ..., group k + group - 1`` always fall in the same block."""
     n_objects = len(terms)
-    n_blocks = min(n_blocks, n_objects)
+    if group < 1:
+        raise ValueError(f"group must be >= 1, got {group}")
+    n_groups = -(-n_objects // group)
+    n_blocks = min(n_blocks, n_groups)
     if n_blocks < 2:
-        raise ValueError(f"a jackknife needs at least 2 objects, got {n_objects}")
-    labels = np.arange(n_objects) * n_blocks // n_objects
+        raise ValueError(f"a jackknife needs at least 2 groups of objects, got {n_groups}")
+    labels = (np.arange(n_objects) // group) * n_blocks // n_groups
     block_sums = np.zeros((n_blocks, terms.shape[1]))
     np.add.at(block_sums, labels, terms)
     total = block_sums.sum(axis=0)
@@ -251,7 +259,7 @@ def mean_shear(
     g, g_err : ndarray, shape (2,)
     """
     terms = _contributions(stack_results(results), step, selection)
-    return _jackknife(terms, n_blocks, lambda sums: _calibrated_shear(sums, step))
+    return jackknife(terms, n_blocks, lambda sums: _calibrated_shear(sums, step))
 
 
 def multiplicative_bias(
@@ -261,6 +269,7 @@ def multiplicative_bias(
     step: float = 0.01,
     selection: Selection | None = None,
     n_blocks: int = 100,
+    group: int = 1,
 ) -> dict[str, float]:
     """Multiplicative and additive shear biases from paired simulations.
 
@@ -269,7 +278,8 @@ def multiplicative_bias(
     calibrated mean shears (each with its own responses), ``m1 = (g+_1 - g-_1) /
     (2 true_g) - 1`` and ``c_i = (g+_i + g-_i) / 2``: the pairing cancels the shape noise
     in ``m1``. Errors are jackknife over blocks of objects, removing a pair's two members
-    together.
+    together, and each run of ``group`` consecutive rows (e.g. ``group=2`` for objects and
+    their 90-degree-rotated partners in rows ``2k, 2k + 1``) together.
 
     Returns
     -------
@@ -292,7 +302,7 @@ def multiplicative_bias(
         m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
         return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
 
-    estimate, error = _jackknife(terms, n_blocks, biases)
+    estimate, error = jackknife(terms, n_blocks, biases, group)
     return {
         "m1": float(estimate[0]),
         "m1_err": float(error[0]),

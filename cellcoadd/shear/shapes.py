@@ -1,14 +1,25 @@
-"""Adaptive-moments shape of one image: the shape record, its flags and the measurement.
+"""Shape of one image: the shape record, its flags and two measurements.
 
-Shapes are GalSim HSM adaptive moments converted to sky coordinates by the image's WCS
-(``u`` West, ``v`` North): the reduced shear ``g = (a - b) / (a + b) * (cos 2 phi, sin 2
-phi)`` (GalSim ``observed_shape``) and ``T = Ixx + Iyy`` in arcsec^2. The S/N is that of
-the flux in the matched (adaptive) Gaussian weight, for white noise.
+``"admom"`` (:func:`measure_shape`): GalSim HSM adaptive moments converted to sky
+coordinates by the image's WCS (``u`` West, ``v`` North): the reduced shear ``g = (a - b) /
+(a + b) * (cos 2 phi, sin 2 phi)`` (GalSim ``observed_shape``) and ``T = Ixx + Iyy`` in
+arcsec^2. The S/N is that of the flux in the matched (adaptive) Gaussian weight, for white
+noise.
+
+``"wmom"`` (:func:`measure_wmom`): moments in a *fixed* round Gaussian weight of FWHM
+``weight_fwhm`` arcsec centred on a fixed position (the ``wmom`` estimator of ngmix /
+metadetect): with ``W`` the weight and ``(u, v)`` sky offsets from the centre,
+``F = sum W I``, ``M_ij = sum W I u_i u_j / F``, ``T = M_uu + M_vv`` and the polarisation
+``e = (M_uu - M_vv, 2 M_uv) / T`` reported as ``g1, g2`` (metacalibration calibrates any
+estimator; for a round Gaussian of sigma ``s`` sheared by ``g``, weight sigma ``w``,
+``e = 2 w^2 / (s^2 + w^2) g`` to first order). Nothing is iterated, so it cannot fail to
+converge at low S/N; the S/N is ``F / sqrt(var sum W^2)``.
 """
 
 from __future__ import annotations
 
 import enum
+from typing import Literal
 
 import galsim
 import numpy as np
@@ -19,6 +30,13 @@ SHAPE_DTYPE = np.dtype(
     [("flags", "i4")]
     + [(name, "f8") for name in ("g1", "g2", "T", "T_psf", "flux", "s2n", "x", "y")]
 )
+
+
+#: Shape estimators: adaptive moments, or moments in a fixed Gaussian weight.
+ShapeKind = Literal["admom", "wmom"]
+SHAPE_KINDS: tuple[str, ...] = ("admom", "wmom")
+#: Default FWHM (arcsec) of the fixed ``wmom`` weight (metadetect's choice for LSST/DES).
+WMOM_FWHM = 1.2
 
 
 class MetacalFlags(enum.IntFlag):
@@ -120,10 +138,91 @@ def _shape_matrix(shape: galsim.Shear) -> np.ndarray:
     return transform @ transform.T
 
 
-def psf_T(psf_image: np.ndarray, wcs: galsim.BaseWCS) -> float:
-    """``T`` (arcsec^2) of a PSF stamp from its adaptive moments, NaN when they fail."""
+def psf_T(psf_image: np.ndarray, wcs: galsim.BaseWCS, weight_fwhm: float | None = None) -> float:
+    """``T`` (arcsec^2) of a PSF stamp from its adaptive moments (NaN when they fail), or
+    from its moments in the fixed ``wmom`` weight of FWHM ``weight_fwhm`` about its
+    central pixel."""
+    if weight_fwhm is not None:
+        n = psf_image.shape[0] // 2
+        flux, muu, mvv, _, _ = weighted_moments(
+            np.asarray(psf_image, dtype=np.float64), wcs, (float(n), float(n)), weight_fwhm
+        )
+        return muu + mvv if flux > 0.0 else np.nan
     gimage = galsim.Image(np.ascontiguousarray(psf_image), xmin=0, ymin=0, wcs=wcs)
     moments = galsim.hsm.FindAdaptiveMom(gimage, strict=False, use_sky_coords=True)
     if moments.moments_status != 0:
         return np.nan
     return _sky_T(moments.moments_sigma, moments.observed_shape)
+
+
+def _sky_offsets(
+    shape: tuple[int, int], wcs: galsim.BaseWCS, centre: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sky offsets ``(u, v)`` (arcsec) of the pixel centres from pixel ``centre``, through the
+    local jacobian of ``wcs`` at ``centre``."""
+    ny, nx = shape
+    jac = wcs.jacobian(image_pos=galsim.PositionD(*centre))
+    dx = np.arange(nx)[np.newaxis, :] - centre[0]
+    dy = np.arange(ny)[:, np.newaxis] - centre[1]
+    return jac.dudx * dx + jac.dudy * dy, jac.dvdx * dx + jac.dvdy * dy
+
+
+def weighted_moments(
+    array: np.ndarray,
+    wcs: galsim.BaseWCS,
+    centre: tuple[float, float] | None,
+    weight_fwhm: float = WMOM_FWHM,
+) -> tuple[float, float, float, float, float]:
+    """``(F, M_uu, M_vv, M_uv, sum W^2)`` of ``array`` in a round Gaussian weight of FWHM
+    ``weight_fwhm`` arcsec centred on pixel ``centre`` (None: the image centre); ``M`` are
+    normalised by ``F``, in arcsec^2."""
+    ny, nx = array.shape
+    if centre is None:
+        centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
+    u, v = _sky_offsets(array.shape, wcs, centre)
+    sigma = weight_fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    weight = np.exp(-0.5 * (u * u + v * v) / sigma**2)
+    wi = weight * array
+    flux = float(np.sum(wi))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        muu = float(np.sum(wi * u * u)) / flux
+        mvv = float(np.sum(wi * v * v)) / flux
+        muv = float(np.sum(wi * u * v)) / flux
+    return flux, muu, mvv, muv, float(np.sum(weight**2))
+
+
+def measure_wmom(
+    array: np.ndarray,
+    wcs: galsim.BaseWCS,
+    noise_variance: float,
+    centre: tuple[float, float] | None,
+    weight_fwhm: float = WMOM_FWHM,
+) -> np.ndarray:
+    """Fixed-weight Gaussian moments shape of ``array`` as a length-1 record.
+
+    See the module docstring; ``centre`` is the fixed 0-based pixel position of the
+    weight (None: the image centre), reported as ``x, y``; ``flux`` is the weighted flux
+    ``sum W I``. ``T_psf`` is left 0 for the caller (:func:`psf_T` with ``weight_fwhm``).
+    """
+    if not np.all(np.isfinite(array)):
+        return empty_record(MetacalFlags.NONFINITE)
+    ny, nx = array.shape
+    if centre is None:
+        centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
+    flux, muu, mvv, muv, sum_w2 = weighted_moments(array, wcs, centre, weight_fwhm)
+    T = muu + mvv
+    if noise_variance > 0.0:
+        s2n = flux / np.sqrt(noise_variance * sum_w2)
+    else:
+        s2n = np.inf if flux > 0.0 else np.nan
+    record = np.zeros(1, dtype=SHAPE_DTYPE)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        record["g1"] = (muu - mvv) / T
+        record["g2"] = 2.0 * muv / T
+    record["T"] = T
+    record["flux"] = flux
+    record["s2n"] = s2n
+    record["x"], record["y"] = centre
+    if not (flux > 0.0 and T > 0.0 and s2n > 0.0):
+        record["flags"] = MetacalFlags.NONPOSITIVE_FLUX
+    return record

@@ -161,8 +161,14 @@ def simulate_object(
     *,
     add_noise: bool = True,
     sampler: GalaxySampler | None = None,
+    rotate_shape: bool = False,
 ) -> StampObject:
-    """Simulate object ``index`` of the run with ``seed`` (see the module docstring)."""
+    """Simulate object ``index`` of the run with ``seed`` (see the module docstring).
+
+    ``rotate_shape`` turns the intrinsic ellipticity by 90 degrees (``e -> -e``) and
+    changes nothing else (same random numbers: flux, size, PSFs, shifts, WCSs, noise): the
+    ring partner that cancels the object's intrinsic shape in a mean.
+    """
     g1, g2 = config.shear if shear is None else (float(shear[0]), float(shear[1]))
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
     n_epochs, size = config.n_epochs, config.stamp_size
@@ -174,12 +180,13 @@ def simulate_object(
     noise = rng.standard_normal((n_epochs, size, size))
 
     flux = float(mag_to_flux(props.mag[0], config.zero_point))
+    turn = -1.0 if rotate_shape else 1.0
     truth = StampTruth(
         mag=float(props.mag[0]),
         flux=flux,
         hlr=float(props.hlr[0]),
-        e1=float(props.e1[0]),
-        e2=float(props.e2[0]),
+        e1=turn * float(props.e1[0]),
+        e2=turn * float(props.e2[0]),
         g1=g1,
         g2=g2,
     )

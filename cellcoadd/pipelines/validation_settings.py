@@ -1,0 +1,189 @@
+"""Settings of the paired-simulation shear validation (:mod:`cellcoadd.pipelines.stamp_pairs`,
+:mod:`cellcoadd.pipelines.shear_validation`), and the cell the stamps are coadded into."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
+from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.geometry.skymap import SkyMap
+from cellcoadd.geometry.tract import Cell
+from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.shear.shapes import WMOM_FWHM
+from cellcoadd.sim.config import SimConfig
+
+Mode = Literal["coadd", "single"]
+MODES: tuple[str, ...] = ("coadd", "single")
+Method = Literal["metacal", "bfd"]
+METHODS: tuple[str, ...] = ("metacal", "bfd")
+
+
+class ValidationSettings(BaseModel):
+    """Everything that fixes the result of a shear-bias validation run (frozen).
+
+    Parameters
+    ----------
+    mode : {"coadd", "single"}
+        Measure the cell coadd of all epochs, or the first epoch alone.
+    seed : int
+        Seed of the run; object ``i`` depends only on ``(seed, i)``.
+    snr : (float, float), optional
+        Target optimal S/N range (``lo == hi`` for a fixed S/N); None keeps the
+        simulation's noise level ``sim.noise_sigma``.
+    step : float
+        Metacalibration shear step.
+    reconvolution_psf : {"gauss", "fitgauss", "dilate"}
+        Metacalibration reconvolution PSF (see :func:`cellcoadd.shear.reconvolution_psf`).
+    sim : SimConfig
+        Stamp simulation settings (paper defaults: 10 epochs of 48 x 48 pixels at
+        0.27 arcsec, ``g = (0.02, 0)``).
+    coadd_pixel_scale : float
+        Pixel scale of the coadd cell, arcsec.
+    cell_inner, cell_border : int
+        Cell inner size (odd, so the cell-centre pixel sits exactly on the objects) and
+        border, coadd pixels. The outer box plus the Lanczos-3 reach must lie inside every
+        epoch's stamp, or epochs are rejected (reported in the results).
+    build : BuildConfig
+        Builder settings (at least one noise realization: metacal needs it).
+    noise_index : int
+        Which coadd noise realization feeds the metacal noise correction.
+    method : {"metacal", "bfd"}
+        Shear method.
+    shape : {"admom", "wmom"}
+        Metacal shape: adaptive moments or fixed-weight Gaussian moments.
+    wmom_fwhm : float
+        FWHM of the ``wmom`` weight, arcsec.
+    rotated_partners : bool
+        Objects ``2k + 1`` are 90-degree-rotated partners of objects ``2k``.
+    bfd_sigma : float
+        Scale (arcsec) of the BFD k-sigma weight (N = 4; the paper: 1).
+    bfd_templates : int
+        Deep templates of the BFD prior (same simulation, noise / 100, shear 0).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    mode: Mode = "coadd"
+    seed: int = Field(0, ge=0)
+    snr: tuple[float, float] | None = None
+    step: float = Field(0.01, gt=0.0, lt=0.1)
+    reconvolution_psf: Literal["gauss", "fitgauss", "dilate"] = "gauss"
+    sim: SimConfig = SimConfig()
+    coadd_pixel_scale: float = Field(0.2, gt=0.0, description="arcsec/pixel")
+    cell_inner: int = Field(None, gt=0, description="coadd pixels")  # type: ignore[assignment]
+    cell_border: int = Field(5, ge=0, description="coadd pixels")
+    build: BuildConfig = BuildConfig(n_noise=1, psf_size=35)
+    noise_index: int = Field(0, ge=0)
+    method: Method = "metacal"
+    shape: Literal["admom", "wmom"] = "admom"
+    wmom_fwhm: float = Field(WMOM_FWHM, gt=0.0, description="arcsec")
+    rotated_partners: bool = True
+    bfd_sigma: float = Field(1.0, gt=0.0, description="arcsec")
+    bfd_templates: int = Field(100, ge=1)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_cell(cls, data: object) -> object:
+        if isinstance(data, dict) and data.get("cell_inner") is None:
+            sim = data.get("sim")
+            sim = SimConfig() if sim is None else SimConfig.model_validate(sim)
+            data = dict(data)
+            data["cell_inner"] = largest_cell_inner(
+                sim, data.get("coadd_pixel_scale", 0.2), data.get("cell_border", 5)
+            )
+        return data
+
+    @field_validator("snr", mode="before")
+    @classmethod
+    def _snr_pair(cls, value: object) -> object:
+        if value is None:
+            return None
+        if isinstance(value, (tuple, list)):
+            return tuple(value) * 2 if len(value) == 1 else value
+        return (value, value)  # a single number: fixed S/N
+
+    @model_validator(mode="after")
+    def _check(self) -> ValidationSettings:
+        if self.snr is not None and not 0.0 < self.snr[0] <= self.snr[1]:
+            raise ValueError(f"snr must satisfy 0 < lo <= hi, got {self.snr}")
+        if self.cell_inner % 2 == 0:
+            raise ValueError(
+                f"cell_inner must be odd so the cell centre falls on the objects, "
+                f"got {self.cell_inner}"
+            )
+        if self.build.n_noise <= self.noise_index:
+            raise ValueError(
+                f"build.n_noise = {self.build.n_noise} has no noise realization "
+                f"{self.noise_index}: metacal needs one"
+            )
+        if self.sim.shear[0] == 0.0 or self.sim.shear[1] != 0.0:
+            raise ValueError(
+                f"the bias is measured on g1: sim.shear must be (g, 0) with g != 0, "
+                f"got {self.sim.shear}"
+            )
+        if self.build.psf_size > self.cell_inner + 2 * self.cell_border:
+            raise ValueError("build.psf_size exceeds the cell outer box")
+        return self
+
+    @property
+    def bfd_snr_range(self) -> tuple[float, float] | None:
+        """BFD flux-S/N selection: the paper's ``(5, 50)``, or none when the target S/N
+        exceeds 50 (a high-S/N run)."""
+        if self.snr is not None and self.snr[1] > 50.0:
+            return None
+        return (5.0, 50.0)
+
+    def skymap_config(self) -> SkyMapConfig:
+        """One tract of one patch of one cell, centred on the stamp objects."""
+        return SkyMapConfig(
+            pixel_scale=self.coadd_pixel_scale,
+            cell_inner=self.cell_inner,
+            cell_border=self.cell_border,
+            cells_per_patch=1,
+            patches_per_tract=1,
+            patch_border_cells=0,
+        )
+
+
+def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: int = 5) -> int:
+    """Largest odd cell inner size whose outer box fits every epoch stamp with Lanczos-3.
+
+    Lanczos-3 taps run from ``floor(x) - 2`` to ``floor(x) + 3``, so every outer-box pixel
+    centre must map to ``2 <= x < stamp_size - 3`` in each epoch; the object sits at
+    ``(stamp_size - 1) / 2`` plus a shift of up to ``max_shift``. The outer box's
+    half-width, in exposure pixels, is stretched by up to ``|ds| + |eta1| + |eta2|`` by the
+    per-epoch WCS variation; six times the combined standard deviation of those (no
+    rotation) keeps rejections negligible. With rotations the box corner can point
+    anywhere, so a factor ``sqrt(2)`` more is kept. Defaults: 41 at 0.2 arcsec, 29 at
+    0.27 arcsec.
+
+    Raises
+    ------
+    ValueError
+        If not even a one-pixel inner region fits.
+    """
+    # taps floor(x) - (w - 1) .. floor(x) + w must stay in [0, stamp_size)
+    reach = (sim.stamp_size - 1) / 2.0 - sim.max_shift - (KERNEL_HALF_WIDTH - 1)
+    spread = np.sqrt(sim.wcs.scale_sigma**2 + 2.0 * sim.wcs.shear_sigma**2)
+    stretch = (1.0 + 6.0 * spread) * (np.sqrt(2.0) if sim.wcs.rotate else 1.0)
+    half_outer = int(np.floor(reach / stretch * sim.pixel_scale / coadd_pixel_scale - 1e-9))
+    inner = 2 * (half_outer - cell_border) + 1
+    if inner < 1:
+        raise ValueError(
+            f"no cell with a {cell_border}-pixel border at {coadd_pixel_scale} arcsec/pixel "
+            f"fits in a {sim.stamp_size}-pixel stamp"
+        )
+    return inner
+
+
+def stamp_cell(settings: ValidationSettings) -> Cell:
+    """Cell ``(0, 0)`` of the one-cell sky map centred on the objects; its centre pixel
+    ``(nx // 2, ny // 2)`` of the outer box is exactly at ``(sim.ra, sim.dec)``.
+
+    One cell serves every object, since they all share the sky position."""
+    skymap = SkyMap.from_centers([(settings.sim.ra, settings.sim.dec)], settings.skymap_config())
+    return skymap[0].cell(0, 0)
