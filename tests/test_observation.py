@@ -226,3 +226,35 @@ def test_to_ngmix_passes_ngmix_documented_arguments(coadd, monkeypatch):
     np.testing.assert_array_equal(psf.args[0], coadd.psf)
     centre = (coadd.psf.shape[0] - 1) / 2
     assert psf.kwargs["jacobian"].kwargs["row"] == psf.kwargs["jacobian"].kwargs["col"] == centre
+
+
+@pytest.mark.parametrize("index", [(100, 100), (0, 0), (199, 0), (0, 199), (199, 66)])
+def test_cell_jacobian_is_a_scaled_rotation_without_flip(index):
+    """No flip, no leakage: what a scalar-pixel-scale code (AnaCal) silently assumes.
+
+    On the default (1.7 degree) tract the cell jacobian is ``0.2 R(phi)`` to 2e-4, with
+    ``phi`` the angle between the tract's pixel grid and local North (meridian convergence,
+    ~ delta_ra sin(dec)), zero at the tract centre.
+    """
+    tract = SkyMap.from_centers([(30.0, -10.0)], SkyMapConfig())[0]
+    cell = tract.cell(*index)
+    exposure = make_exposure(cell.center_sky, shape=(300, 300), noise_sigma=1.0, visit=0)
+    jac = observation_jacobian(to_observation(build_cell(cell, [exposure], BUILD)))
+    # no flip: column -> u (West), row -> v (North), both increasing
+    assert jac[0, 0] > 0.0 and jac[1, 1] > 0.0 and np.linalg.det(jac) > 0.0
+    scale = np.sqrt(np.linalg.det(jac))
+    assert scale == pytest.approx(0.2, rel=1e-3)
+    phi = np.arctan2(jac[1, 0] - jac[0, 1], jac[0, 0] + jac[1, 1])
+    rotation = scale * np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    # what is left is a WCS shear (gnomonic distortion) of at most ~1e-4
+    assert np.max(np.abs(jac - rotation)) / scale < 2e-4
+    ra, dec = cell.center_sky
+    convergence = np.radians(ra - 30.0) * np.sin(np.radians(dec))
+    if index == (100, 100):
+        # at the tract centre the jacobian is diagonal: 0.2 arcsec/px, North up, East left
+        assert abs(jac[0, 1]) / scale < 1e-4 and abs(jac[1, 0]) / scale < 1e-4
+        assert abs(phi) < 1e-4
+    else:
+        # away from it, local North turns by the meridian convergence (up to 0.15 deg here)
+        assert phi == pytest.approx(convergence, rel=0.1)
+        assert abs(phi) > 1e-3

@@ -19,6 +19,15 @@ from cellcoadd.shear.metacal import (
     metacal_shears,
     reconvolution_psf,
 )
+from cellcoadd.shear.noise_correlation import (
+    gaussian_weight,
+    noise_correlation,
+    noise_covariance,
+    noise_power_spectrum,
+    snr_correction,
+    variance_factor,
+    weighted_flux_variance,
+)
 from cellcoadd.shear.observation import (
     EmptyCellError,
     observation_jacobian,
@@ -34,7 +43,7 @@ from cellcoadd.shear.response import (
     shear_response,
     stack_results,
 )
-from cellcoadd.shear.shapes import SHAPE_DTYPE, MetacalFlags
+from cellcoadd.shear.shapes import SHAPE_DTYPE, SHAPE_KINDS, WMOM_FWHM, MetacalFlags
 
 __all__ = [
     "INTERPOLANT",
@@ -42,22 +51,31 @@ __all__ = [
     "PAPER_CUTS",
     "RECONVOLUTION_KINDS",
     "SHAPE_DTYPE",
+    "SHAPE_KINDS",
+    "WMOM_FWHM",
     "EmptyCellError",
     "MetacalError",
     "MetacalFlags",
     "MetacalImage",
     "SelectionCuts",
     "ShearResponse",
+    "gaussian_weight",
     "mean_shear",
     "measure_metacal",
     "measure_shapes",
     "metacal_images",
     "metacal_shears",
     "multiplicative_bias",
+    "noise_correlation",
+    "noise_covariance",
+    "noise_power_spectrum",
     "observation_jacobian",
     "reconvolution_psf",
     "shear_response",
+    "snr_correction",
     "stack_results",
     "to_ngmix",
     "to_observation",
+    "variance_factor",
+    "weighted_flux_variance",
 ]

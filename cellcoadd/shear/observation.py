@@ -22,7 +22,11 @@ Conventions
   the resampled coadd: the stored ``variance`` plane resamples the input variances with
   the kernel weights and so ignores the averaging the interpolation does (it is ~25%
   higher for 0.27 arcsec inputs on a 0.2 arcsec grid). The pixel correlations themselves
-  are carried by ``noise``.
+  (~0.4 between neighbours) are carried by ``noise``; a weight map cannot express them, so
+  S/N and detection thresholds from it need :mod:`cellcoadd.shear.noise_correlation`.
+* ``noise`` is one realization coadded exactly like the image. ngmix's metacal uses it
+  only with ``use_noise_image=True`` (``ngmix.metacal.get_all_metacal`` or metadetect's
+  ``config["metacal"]``); otherwise it corrects with white noise drawn from the weight.
 * ``bmask`` and ``ormask`` are both the cell mask: the coadd mask is already the OR of the
   used inputs' masks under the resampling kernel, which is what ``ormask`` means to
   metadetect, and bad input pixels got no weight rather than masking the coadd pixel.
@@ -44,9 +48,12 @@ from cellcoadd.model.cell_coadd import CellCoadd
 JACOBIAN_KEYS: tuple[str, ...] = ("row0", "col0", "dudrow", "dudcol", "dvdrow", "dvdcol")
 
 _NGMIX_MISSING = (
-    "ngmix is an optional dependency of cellcoadd and is not installed; install it with "
-    "'conda install -c conda-forge ngmix' (or 'pip install ngmix'), or use "
-    "cellcoadd.shear.to_observation, which returns plain numpy arrays"
+    "ngmix is an optional dependency of cellcoadd and is not installed. It is not on the "
+    "package index cellcoadd is installed from, so 'pip install ngmix' may fail: get it "
+    "from conda-forge ('conda install -c conda-forge ngmix') or from its source, "
+    "https://github.com/esheldon/ngmix ('pip install .' in a checkout; it needs numpy, "
+    "scipy and numba). Or use cellcoadd.shear.to_observation, which returns plain numpy "
+    "arrays (docs/shear.md, 'Feeding a cell to ngmix and metadetect')"
 )
 
 
