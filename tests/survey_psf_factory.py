@@ -3,7 +3,7 @@
 Both factories write a PSF whose size varies across a CCD by a known, measurable amount, so
 tests of the library's PSF wrappers can check position dependence, not only the centre.
 
-Conventions (verified in ``/tmp/psf_conventions.md`` when this module was written):
+Conventions (see ``docs/inputs.md``; ``tests/test_survey_psf.py`` checks them):
 
 * PSFEx polynomials are in **1-based** FITS image coordinates (``X_IMAGE``/``Y_IMAGE``), and the
   stamps are the *pixel-included* (effective) PSF sampled every ``PSF_SAMP`` image pixels, with
