@@ -31,6 +31,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
+from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.stamp_pairs import (
     PairMeasurement,
     bfd_noise_sigma,
@@ -213,6 +214,8 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
         raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
     if settings.method == "bfd":
         return _summarize_bfd(settings, catalogue)
+    if settings.method == "anacal":
+        return summarize_anacal(settings, catalogue, _group(settings, catalogue))
     plus, minus = catalogue.plus, catalogue.minus
     bias = multiplicative_bias(
         plus,
@@ -373,8 +376,8 @@ def validate_shear(
         Metacal reconvolution PSF.
     return_measurements : bool
         Also return the per-object :class:`PairCatalogue` under ``"measurements"``.
-    method : {"metacal", "bfd"}
-        Shear method (BFD: noise level fixed per run, see
+    method : {"metacal", "bfd", "anacal"}
+        Shear method (AnaCal: FPFS, coadd mode only; BFD: noise level fixed per run, see
         :mod:`cellcoadd.pipelines.stamp_pairs`).
     shape : {"admom", "wmom"}
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
@@ -432,7 +435,7 @@ def validate_shear(
 
 def _label(result: dict[str, Any]) -> str:
     method = result.get("method", "metacal")
-    name = "metacal" if method == "metacal" else "BFD"
+    name = {"metacal": "metacal", "bfd": "BFD"}.get(method, "AnaCal FPFS")
     shape = result["settings"].get("shape", "admom")
     if method == "metacal" and shape != "admom":
         name += f" {shape}"
@@ -464,6 +467,8 @@ def format_bias_table(results: Sequence[dict[str, Any]]) -> str:
             f"{str(result['n_used']) + '/' + str(result['n_objects']):>13} "
             f"{result['cpu_seconds']:>9.0f}"
         )
+        if (method, mode) not in PAPER_TABLE1_ROWS:
+            continue  # AnaCal: not in the paper
         paper_m, paper_err = PAPER_TABLE1_ROWS[(method, mode)]
         paper_name = "metacal" if method == "metacal" else "BFD"
         lines.append(
@@ -485,4 +490,3 @@ def _pm(value: float, error: float) -> str:
 def _snr_text(snr: Sequence[float]) -> str:
     low, high = snr
     return f"S/N {low:g}" if low == high else f"S/N {low:g}-{high:g}"
-

@@ -36,6 +36,9 @@ level in single mode); the template prior and the shear are made from all the ob
 one moment covariance for all targets, so its noise level is the same for every object:
 ``sigma = S_ref / snr``, ``S_ref`` the median ``sqrt(sum I^2)`` of the template sample,
 ``snr`` the geometric mean of the target range (the median object has that S/N).
+``method="anacal"`` measures FPFS shapes and their analytic shear responses through AnaCal
+(:mod:`cellcoadd.shear.anacal_adapter`) with the same noise realization and measured
+variance as metacal (coadd mode only).
 
 Everything about object ``i`` depends only on ``(s, i)`` and the settings, so any split
 of a run over processes gives identical results.
@@ -61,7 +64,7 @@ from cellcoadd.pipelines.validation_settings import (
     largest_cell_inner,
     stamp_cell,
 )
-from cellcoadd.shear import bfd
+from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
 from cellcoadd.shear.shapes import empty_record
@@ -198,6 +201,8 @@ def _failed(settings: ValidationSettings, flags: int) -> dict[str, np.ndarray]:
         record = np.zeros(1, dtype=BFD_DTYPE)
         record["flags"] = flags
         return {"bfd": record}
+    if settings.method == "anacal":
+        return {"anacal": anacal_adapter.empty_anacal_record(flags)}
     return {name: empty_record(flags) for name in METACAL_TYPES}
 
 
@@ -244,6 +249,13 @@ def _measure_coadd(
             (jac["col0"], jac["row0"]), noise_images=[obs["noise"]],
         )  # fmt: skip
         return measured, coadd.n_used
+    if settings.method == "anacal":
+        record = anacal_adapter.measure_fpfs(
+            obs["image"], obs["psf"]["image"], obs["noise"], observation_jacobian(obs),
+            obs["meta"]["noise_variance"], (jac["col0"], jac["row0"]),
+            sigma_arcsec=settings.anacal_sigma,
+        )  # fmt: skip
+        return {"anacal": record}, coadd.n_used
     result = measure_metacal(
         obs["image"],
         obs["psf"]["image"],

@@ -18,8 +18,8 @@ from cellcoadd.sim.config import SimConfig
 
 Mode = Literal["coadd", "single"]
 MODES: tuple[str, ...] = ("coadd", "single")
-Method = Literal["metacal", "bfd"]
-METHODS: tuple[str, ...] = ("metacal", "bfd")
+Method = Literal["metacal", "bfd", "anacal"]
+METHODS: tuple[str, ...] = ("metacal", "bfd", "anacal")
 
 
 class ValidationSettings(BaseModel):
@@ -51,8 +51,8 @@ class ValidationSettings(BaseModel):
         Builder settings (at least one noise realization: metacal needs it).
     noise_index : int
         Which coadd noise realization feeds the metacal noise correction.
-    method : {"metacal", "bfd"}
-        Shear method.
+    method : {"metacal", "bfd", "anacal"}
+        Shear method (``anacal``: FPFS through AnaCal, the optional ``cellcoadd[anacal]``).
     shape : {"admom", "wmom"}
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
     wmom_fwhm : float
@@ -63,6 +63,8 @@ class ValidationSettings(BaseModel):
         Scale (arcsec) of the BFD k-sigma weight (N = 4; the paper: 1).
     bfd_templates : int
         Deep templates of the BFD prior (same simulation, noise / 100, shear 0).
+    anacal_sigma : float
+        Scale (arcsec) of AnaCal's FPFS shapelet kernel.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -84,6 +86,7 @@ class ValidationSettings(BaseModel):
     rotated_partners: bool = True
     bfd_sigma: float = Field(1.0, gt=0.0, description="arcsec")
     bfd_templates: int = Field(100, ge=1)
+    anacal_sigma: float = Field(0.8, gt=0.0, lt=3.0, description="arcsec")
 
     @model_validator(mode="before")
     @classmethod
@@ -125,6 +128,8 @@ class ValidationSettings(BaseModel):
                 f"the bias is measured on g1: sim.shear must be (g, 0) with g != 0, "
                 f"got {self.sim.shear}"
             )
+        if self.method == "anacal" and self.mode != "coadd":
+            raise ValueError("method 'anacal' runs in coadd mode only")
         if self.build.psf_size > self.cell_inner + 2 * self.cell_border:
             raise ValueError("build.psf_size exceeds the cell outer box")
         return self
