@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.shear.response import jackknife
+from cellcoadd.shear.response import paired_shear_bias
 
 #: One AnaCal measurement: ``flags`` (0: good, :data:`ANACAL_FAILED`), the ellipticities,
 #: their shear responses, the flux moment ``m00`` and AnaCal's ``flux`` and ``s2n``.
@@ -212,17 +212,9 @@ def paired_bias(
         axis=1,
     )
 
-    def biases(sums: np.ndarray) -> np.ndarray:
-        g_plus = sums[0:2] / sums[2:4]
-        g_minus = sums[4:6] / sums[6:8]
-        m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
-        return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
-
-    estimate, error = jackknife(terms, n_blocks, biases, group)
-    names = ("m1", "c1", "c2")
-    out = {name: float(value) for name, value in zip(names, estimate, strict=True)}
-    out.update({f"{name}_err": float(value) for name, value in zip(names, error, strict=True)})
-    return out
+    return paired_shear_bias(
+        terms, len(columns), lambda sums: sums[0:2] / sums[2:4], true_g, n_blocks, group
+    )
 
 
 __all__ = [

@@ -49,7 +49,7 @@ from cellcoadd.shear.bfd_moments import (
     measure_moments,
     moment_coefficients,
 )
-from cellcoadd.shear.response import jackknife
+from cellcoadd.shear.response import paired_shear_bias
 
 __all__ = ["Pqr", "TemplatePrior", "estimate_shear", "paired_bias"]
 
@@ -383,14 +383,6 @@ def paired_bias(
     terms = np.hstack([_per_target(plus), _per_target(minus)])
     selection = prior.selection_pqr()
 
-    def biases(sums: np.ndarray) -> np.ndarray:
-        g_plus = _shear_from_sums(sums[:7], selection)
-        g_minus = _shear_from_sums(sums[7:], selection)
-        m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
-        return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
-
-    estimate, error = jackknife(terms, n_blocks, biases, group)
-    names = ("m1", "c1", "c2")
-    out = {name: float(v) for name, v in zip(names, estimate, strict=True)}
-    out.update({f"{name}_err": float(e) for name, e in zip(names, error, strict=True)})
-    return out
+    return paired_shear_bias(
+        terms, 7, lambda sums: _shear_from_sums(sums, selection), true_g, n_blocks, group
+    )
