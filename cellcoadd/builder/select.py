@@ -155,10 +155,11 @@ def select_exposure(
 
     Returns a :class:`Candidate` (used) or a :class:`Rejection` with the reason and the
     overlap fraction when known. ``grid_cache``: a dict shared by the calls for one cell,
-    reusing its mapping grids (see :func:`map_box`).
+    reusing its mapping grids (see :func:`map_box`). Far exposures are best left out
+    first with the cheap :func:`rough_exposure_box`, as
+    :func:`cellcoadd.builder.cell.build_cell` does; here
+    they end as ``no_overlap`` too, after the mapping.
     """
-    if rough_exposure_box(cell, exposure) is None:
-        return Rejection(InputStatus.NO_OVERLAP)
     outer = Box.from_shape(cell.outer_bbox.shape)
     try:
         mapping = map_box(
