@@ -36,7 +36,7 @@ STAGES = {
     "input planes + noise": "input_planes",
     "warp": "accumulate_warped",
     "mask": "warp_mask_or",
-    "PSF": "_coadd_psf_contribution",
+    "PSF": "coadd_psf_contribution",
     "PSF moments": "psf_moments",
 }
 

@@ -337,11 +337,13 @@ def test_dask_tasks_carry_references_to_exposures_not_pixels(
     distributed = pytest.importorskip("distributed")
     exposures, serial = patch_inputs
     one_exposure = len(pickle.dumps(exposures[0], protocol=5))
-    tasks = []  # per task: its pickled size and whether each candidate is a future
+    tasks = []  # per task (a block of cells): its pickled size, each candidate's type
+    cells_built = []
     submit = dask_client.submit
 
     def recording_submit(function, *args, **kwargs):
         tasks.append((len(pickle.dumps(args, protocol=5)), [type(c) for c in args[1]]))
+        cells_built.extend(cell.index for cell in args[0])
         return submit(function, *args, **kwargs)
 
     monkeypatch.setattr(dask_client, "submit", recording_submit)
@@ -349,8 +351,9 @@ def test_dask_tasks_carry_references_to_exposures_not_pixels(
         tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=dask_client
     )
     _assert_same_patch(serial, on_dask)
-    assert len(tasks) == len(serial.cells)
-    assert sum(len(kinds) for _, kinds in tasks) >= len(serial.cells)  # exposures referenced
+    assert sorted(cells_built) == sorted(serial.cells)  # each cell in one block
+    assert len(tasks) > 1  # blocks spread over the workers
+    assert all(kinds for _, kinds in tasks)  # exposures referenced
     assert all(kind is distributed.Future for _, kinds in tasks for kind in kinds)
     assert max(size for size, _ in tasks) < one_exposure / 10
     # the exposures broadcast to the workers are released once the patch is built

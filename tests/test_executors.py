@@ -105,18 +105,20 @@ def test_cli_build_failing_in_a_worker_writes_nothing(tmp_path, exposure_files, 
 def _die_in_workers(parent_pid: int, *args, **kwargs):
     if os.getpid() != parent_pid:
         os._exit(9)
-    raise RuntimeError("build_cell replaced by a test ran in the parent process")
+    raise RuntimeError("the block builder replaced by a test ran in the parent process")
 
 
 @pytest.mark.skipif(
     multiprocessing.get_start_method() != "fork",
-    reason="the replaced build_cell reaches worker processes only when they are forked",
+    reason="the replaced block builder reaches worker processes only when they are forked",
 )
 def test_cli_build_with_a_dying_worker_writes_nothing(
     tmp_path, exposure_files, capsys, monkeypatch
 ):
     files, skymap = exposure_files
-    monkeypatch.setattr(patch_module, "build_cell", functools.partial(_die_in_workers, os.getpid()))
+    monkeypatch.setattr(
+        patch_module, "_build_block", functools.partial(_die_in_workers, os.getpid())
+    )
     out = tmp_path / "patch.h5"
     code = _cli_build(files, skymap, out, "--workers", "2", "--psf-size", "11")
     error = capsys.readouterr().err

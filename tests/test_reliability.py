@@ -17,6 +17,7 @@ from astropy.wcs import WCS
 from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
 from exposure_factory import make_exposure, make_wcs
 
+import cellcoadd.builder.exposure_frame as frame_module
 import cellcoadd.builder.select as select_module
 from cellcoadd import Box, Exposure, ExposureError, build_patch
 from cellcoadd.io.exposure_io import write_exposure
@@ -199,10 +200,17 @@ def test_masked_non_finite_pixels_are_used_without_spreading(tiny):
 
 def test_a_cell_falling_off_the_exposure_projection_is_an_edge(tiny, monkeypatch):
     """A WCS whose inverse fails inside the cell (NaN positions) gives an ``edge`` rejection
-    instead of stopping the build."""
+    instead of stopping the build. No grid then maps the patch into the exposure, so each
+    cell maps itself (and finds the NaN)."""
     patch, good, reference = tiny
     broken = dataclasses.replace(good[0], visit=7)
     original = select_module.map_box
+    original_grid = frame_module.grid_mapping
+
+    def no_grid(coadd_wcs, box, exposure_wcs, *args, **options):
+        if exposure_wcs is broken.wcs:
+            return None
+        return original_grid(coadd_wcs, box, exposure_wcs, *args, **options)
 
     def partly_unmappable(coadd_wcs, box, exposure_wcs, **options):
         mapping = original(coadd_wcs, box, exposure_wcs, **options)
@@ -213,6 +221,7 @@ def test_a_cell_falling_off_the_exposure_projection_is_an_edge(tiny, monkeypatch
         return dataclasses.replace(mapping, x=x)
 
     monkeypatch.setattr(select_module, "map_box", partly_unmappable)
+    monkeypatch.setattr(frame_module, "grid_mapping", no_grid)
     built = build_patch(patch, [*good, broken], TINY_BUILD, seed=1, progress=False)
     for index, cell in built.items():
         assert [r.status for r in cell.inputs] == ["used", "used", "edge"]

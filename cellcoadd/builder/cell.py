@@ -1,27 +1,42 @@
-"""Coadding one cell: select, warp, accumulate, draw the PSF, finish (DESIGN "Building").
+"""Coadding cells: select, warp, accumulate, draw the PSF, finish (DESIGN "Building").
 
-The coadd is a weighted mean with one scalar weight per exposure (inverse background
-variance at the common zero point), so it is linear and independent of the signal and
-has a well-defined PSF (paper section 2). Image, noise realizations and masked fraction
-go through the same normalised Lanczos-3 weights; the PSF goes through the same mapping.
-Inputs are accumulated one at a time, so memory does not grow with their number.
+Cells of one tract are built together when they share inputs (a block of neighbours, or
+one cell). Each exposure is mapped once onto the tract's pixel grid over the whole area
+being built (:mod:`cellcoadd.builder.exposure_frame`); every cell selects it (edge-free:
+it must cover the cell's outer box and the kernel's reach) from that mapping, and the
+exposure is warped once over the bounding box of the cells that accept it, each cell
+taking its part. A tract pixel therefore gets the same contribution from an exposure
+whichever cell, block or process it is built in: two overlapping cells that accepted the
+same inputs hold the same pixels, bit for bit. Image, noise realizations, variance and
+masked fraction go through the same normalised Lanczos-3 weights; the PSF is drawn at each
+cell centre and goes through the same mapping. Inputs are added one at a time, so memory
+does not grow with their number.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 
+from cellcoadd.builder.cell_sums import (
+    CellSums,
+    cell_jacobian,
+    coadd_psf_contribution,
+    finish_cell,
+    input_record,
+)
+from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
 from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
-from cellcoadd.builder.kernels.warp import warp_planes
-from cellcoadd.builder.mapping import footprint_box
-from cellcoadd.builder.psf import PsfError, draw_exposure_psf, psf_moments
+from cellcoadd.builder.mapping import PixelMapping, footprint_box
+from cellcoadd.builder.psf import PsfError, psf_moments
 from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
 from cellcoadd.errors import InputError
+from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -35,104 +50,6 @@ from cellcoadd.model.sources import (
     describe,
     header_of,
 )
-
-
-class _Sums:
-    """Running weighted sums of one cell's planes (float64 for exact accumulation).
-
-    One array holds them all, in the order of
-    :func:`~cellcoadd.builder.kernels.input_planes.input_planes` (image, K noise realizations,
-    variance, masked fraction), so one kernel call adds an exposure.
-    """
-
-    def __init__(self, shape: tuple[int, int], n_noise: int, psf_size: int) -> None:
-        self.planes = np.zeros((n_noise + 3, *shape))
-        self.image = self.planes[0]
-        self.noise = self.planes[1 : 1 + n_noise]
-        self.variance = self.planes[1 + n_noise]
-        self.mfrac = self.planes[2 + n_noise]
-        self.psf = np.zeros((psf_size, psf_size))
-        self.mask = np.zeros(shape, dtype=np.int32)
-        self.weight = 0.0
-
-
-def _add_exposure(
-    sums: _Sums,
-    candidate: Candidate,
-    pixels: np.ndarray,
-    mask: np.ndarray,
-    psf_stamp: np.ndarray,
-    n_noise: int,
-) -> None:
-    """Warp ``pixels`` (from :func:`exposure_planes`) and ``mask`` (coadd bit numbering)
-    of one exposure into the cell's running sums."""
-    box, mapping = candidate.footprint, candidate.mapping
-    # without bad pixels the masked-fraction plane would be all zeros: it is left out
-    with_mfrac = pixels.shape[2] == n_noise + 3
-    x_local = mapping.x - box.x_start
-    y_local = mapping.y - box.y_start
-    weight, area = candidate.weight, mapping.area_ratio
-    # image and noise: weight * area; variance: weight^2 * area^2 (the variance of a warped
-    # pixel is approximated by the warped variance; the noise realizations carry the exact
-    # correlated noise); masked fraction: weight
-    plane_weights = [weight] * (1 + n_noise) + [weight**2] + [weight] * with_mfrac
-    plane_scales = [0] * (1 + n_noise) + [1] + [-1] * with_mfrac
-    accumulate_warped(
-        pixels,
-        x_local,
-        y_local,
-        sums.planes[: pixels.shape[2]],
-        plane_weights,
-        np.stack([area, area**2]),
-        plane_scales,
-    )
-    sums.mask |= warp_mask_or(mask, x_local, y_local)
-    sums.psf += weight * psf_stamp
-    sums.weight += weight
-
-
-def _coadd_psf_contribution(cell: Cell, candidate: Candidate, psf_size: int) -> np.ndarray:
-    """The exposure PSF at the cell centre, warped like the image into the PSF stamp.
-
-    The stamp is centred on the cell-centre pixel; its pixels map to the exposure through
-    the same mapping as the image pixels, so the PSF has the image's sub-pixel phase.
-    """
-    mapping = candidate.mapping
-    ny, nx = cell.outer_bbox.shape
-    half = psf_size // 2
-    rows = slice(ny // 2 - half, ny // 2 + half + 1)
-    cols = slice(nx // 2 - half, nx // 2 + half + 1)
-    x, y = mapping.x[rows, cols], mapping.y[rows, cols]
-    x_center, y_center = float(mapping.x[ny // 2, nx // 2]), float(mapping.y[ny // 2, nx // 2])
-    box = footprint_box(_SubMapping(x, y))
-    stamp = draw_exposure_psf(candidate.exposure, x_center, y_center, box)
-    warped = warp_planes(stamp[None], x - box.x_start, y - box.y_start)[0]
-    return warped * mapping.area_ratio[rows, cols]
-
-
-class _SubMapping:
-    """Minimal stand-in exposing ``x`` and ``y`` for :func:`footprint_box`."""
-
-    def __init__(self, x: np.ndarray, y: np.ndarray) -> None:
-        self.x, self.y = x, y
-
-
-def _record(
-    exposure: Exposure | ExposureHeader, status: InputStatus, **fields: float
-) -> InputRecord:
-    return InputRecord(
-        visit=exposure.visit,
-        detector=exposure.detector,
-        band=exposure.band,
-        zero_point=exposure.zero_point,
-        status=status,
-        weight=fields.pop("weight", 0.0),
-        overlap_fraction=fields.pop("overlap_fraction", 0.0),
-        psf_fwhm=fields.pop("psf_fwhm", float("nan")),
-        psf_e1=fields.pop("psf_e1", float("nan")),
-        psf_e2=fields.pop("psf_e2", float("nan")),
-        psf_T=fields.pop("psf_T", float("nan")),
-    )
 
 
 def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: BuildConfig) -> None:
@@ -170,6 +87,359 @@ Input = Exposure | ExposureSource | DescribedSource
 #: Pixels loaded around a cell's footprint from an exposure source: the interpolation
 #: of bad pixels reads this far, plus the kernel's reach and a margin for the rough box.
 SOURCE_MARGIN = DEFAULT_MAX_RADIUS + 8
+
+
+def bounding_box(boxes: Sequence[Box]) -> Box:
+    """The smallest box holding every box of ``boxes`` (at least one)."""
+    return Box(
+        x_start=min(b.x_start for b in boxes),
+        x_stop=max(b.x_stop for b in boxes),
+        y_start=min(b.y_start for b in boxes),
+        y_stop=max(b.y_stop for b in boxes),
+    )
+
+
+def warped_contribution(
+    candidate: Candidate, pixels: np.ndarray, mask: np.ndarray, n_noise: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted warped planes and the warped mask of one selected exposure.
+
+    ``pixels`` are its planes over ``candidate.footprint`` (:func:`exposure_planes`),
+    ``mask`` its mask there in the coadd's bit numbering. Image and noise get
+    ``weight * area``, the variance ``weight^2 * area^2`` (the variance of a warped pixel
+    is approximated by the warped variance; the noise realizations carry the exact
+    correlated noise), the masked fraction ``weight``. The planes are warped into zeros and
+    added to a cell's sums afterwards, so a pixel's sums do not depend on the box it was
+    warped in.
+    """
+    box, mapping = candidate.footprint, candidate.mapping
+    # without bad pixels the masked-fraction plane would be all zeros: it is left out
+    with_mfrac = pixels.shape[2] == n_noise + 3
+    x_local = mapping.x - box.x_start
+    y_local = mapping.y - box.y_start
+    weight, area = candidate.weight, mapping.area_ratio
+    plane_weights = [weight] * (1 + n_noise) + [weight**2] + [weight] * with_mfrac
+    plane_scales = [0] * (1 + n_noise) + [1] + [-1] * with_mfrac
+    planes = np.zeros((pixels.shape[2], *x_local.shape))
+    accumulate_warped(
+        pixels, x_local, y_local, planes, plane_weights, np.stack([area, area**2]), plane_scales
+    )
+    return planes, warp_mask_or(mask, x_local, y_local)
+
+
+class CellBlock:
+    """Cells of one tract built together from the same candidate inputs.
+
+    Parameters
+    ----------
+    cells : sequence of Cell
+        The cells, all of one tract.
+    config : BuildConfig
+        Build settings.
+    seed : int
+        Seed of the noise realizations.
+    mask_bits : MaskBits
+        Bit definitions of the output masks.
+    band : str or None
+        The band of the coadds; inputs of another band are recorded as ``band_mismatch``.
+    area : Box
+        Tract pixels the exposures are mapped over (default: the cells' outer boxes'
+        bounding box); a patch build passes the patch's, so every block of the patch
+        uses the same mapping.
+    record_distant : bool
+        Record inputs whose projected valid box misses a cell as ``no_overlap`` (default);
+        a patch build leaves them out of the cell's inputs instead.
+
+    Attributes
+    ----------
+    current : Cell
+        The cell being worked on (named when something fails).
+    """
+
+    def __init__(
+        self,
+        cells: Sequence[Cell],
+        config: BuildConfig,
+        seed: int,
+        mask_bits: MaskBits,
+        band: str | None,
+        area: Box | None = None,
+        *,
+        record_distant: bool = True,
+    ) -> None:
+        if not cells:
+            raise ValueError("a block needs at least one cell")
+        if len({cell.tract for cell in cells}) > 1:
+            raise ValueError("the cells of a block must belong to one tract")
+        self.cells = list(cells)
+        self.current = self.cells[0]
+        for cell in self.cells:
+            self.current = cell
+            if config.psf_size > min(cell.outer_bbox.shape):
+                raise ValueError(
+                    f"psf_size {config.psf_size} exceeds the outer box {cell.outer_bbox} of "
+                    f"cell {cell.index}"
+                )
+        self.config, self.seed, self.mask_bits, self.band = config, seed, mask_bits, band
+        self.record_distant = record_distant
+        self.area = area or bounding_box([cell.outer_bbox for cell in self.cells])
+        self.sums = [
+            CellSums(cell.outer_bbox.shape, config.n_noise, config.psf_size) for cell in cells
+        ]
+        self.records: list[list[InputRecord]] = [[] for _ in cells]
+        self.jacobians = [cell_jacobian(cell) for cell in cells]
+        self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
+
+    def add(self, item: Exposure | DescribedSource, frame: ExposureFrame | None = None) -> None:
+        """Consider one input for every cell: select, warp and add it where it is usable.
+
+        ``frame``: the input's :func:`exposure_frame` over :attr:`area` (computed here by
+        default). Each cell gets one input record.
+        """
+        header = header_of(item)
+        if header.band != self.band:
+            for records in self.records:
+                records.append(input_record(header, InputStatus.BAND_MISMATCH))
+            return
+        if frame is None:
+            frame = exposure_frame(
+                self.cells[0].tract_wcs, self.area, header, self.config.mapping_tolerance
+            )
+        shared: list[int] = []  # cells inside the shared mapping
+        alone: dict[int, Box] = {}  # cells mapping themselves: their rough exposure box
+        for i, cell in enumerate(self.cells):
+            self.current = cell
+            box = cell.outer_bbox
+            if frame.serves_nothing or not box.overlaps(frame.region):
+                if self.record_distant:
+                    self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
+            elif frame.covers(box):
+                shared.append(i)
+            elif frame.mapping is not None:  # beyond the exposure's projected valid box
+                self.records[i].append(_partial_record(frame, box, header))
+            elif (near := rough_exposure_box(cell, header)) is not None:
+                alone[i] = near
+            elif self.record_distant:
+                self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
+        if not shared and not alone:
+            return
+        mapping = None
+        loads = [near.grow(SOURCE_MARGIN) for near in alone.values()]
+        if shared:
+            assert frame.mapping is not None  # frame.covers says so
+            mapping = frame.mapping.restricted(
+                bounding_box([self.cells[i].outer_bbox for i in shared])
+            )
+            loads.append(footprint_box(mapping).grow(SOURCE_MARGIN))
+        exposure = item if isinstance(item, Exposure) else item.load(bounding_box(loads))
+        bad_bits = exposure.mask_bits.mask_of(
+            name for name in self.config.bad_mask_bits if name in exposure.mask_bits.bits
+        )
+        if mapping is not None:
+            self._add_shared(exposure, item, shared, mapping, bad_bits)
+        for i in alone:
+            self.current = self.cells[i]
+            found = select_exposure(
+                self.cells[i], exposure, self.config, bad_bits, grid_cache=self.grid_caches[i]
+            )
+            self._use(i, exposure, found, bad_bits)
+
+    def _add_shared(
+        self,
+        exposure: Exposure,
+        item: Exposure | DescribedSource,
+        shared: list[int],
+        mapping: PixelMapping,
+        bad_bits: int,
+    ) -> None:
+        """Select ``exposure`` for the ``shared`` cells from one mapping (over their
+        bounding box, header pixels), and warp it once for all that accept it."""
+        # positions in the loaded pixels: a source's cutout starts at its origin
+        dx, dy = (0, 0) if isinstance(item, Exposure) else exposure.origin
+        x, y = mapping.x - dx, mapping.y - dy  # exact: integer shifts
+        accepted: list[tuple[int, Candidate, np.ndarray]] = []
+        for i in shared:
+            cell = self.current = self.cells[i]
+            rows, cols = cell.outer_bbox.slices_in(mapping.box)
+            part = PixelMapping(
+                cell.outer_bbox,
+                x[rows, cols],
+                y[rows, cols],
+                mapping.area_ratio[rows, cols],
+                mapping.max_error,
+                mapping.grid_step,
+            )
+            found = select_exposure(cell, exposure, self.config, bad_bits, mapping=part)
+            if isinstance(found, Rejection):
+                self._reject(i, exposure, found)
+                continue
+            try:
+                psf_stamp = coadd_psf_contribution(cell, found, self.config.psf_size)
+            except PsfError:
+                self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
+                continue
+            accepted.append((i, found, psf_stamp))
+        if not accepted:
+            return
+        self.current = self.cells[accepted[0][0]]
+        box = bounding_box([self.cells[i].outer_bbox for i, _, _ in accepted])
+        rows, cols = box.slices_in(mapping.box)
+        union = PixelMapping(
+            box,
+            x[rows, cols],
+            y[rows, cols],
+            mapping.area_ratio[rows, cols],
+            mapping.max_error,
+            mapping.grid_step,
+        )
+        warped = self._warp(accepted[0][1], union, exposure, bad_bits)
+        for i, found, psf_stamp in accepted:
+            if warped is None:  # the box of all holds something none of them needs
+                self._use(i, exposure, found, bad_bits, psf_stamp)
+                continue
+            planes, mask = warped
+            rows, cols = self.cells[i].outer_bbox.slices_in(box)
+            self._accept(i, exposure, found, planes[:, rows, cols], mask[rows, cols], psf_stamp)
+
+    def _warp(
+        self, found: Candidate, mapping: PixelMapping, exposure: Exposure, bad_bits: int
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``exposure`` warped over ``mapping``'s box, with what selection gave ``found``
+        (weight, flux scale); None if that box's footprint is not all usable (off the
+        valid box, or a hole too large to interpolate)."""
+        footprint = footprint_box(mapping)
+        valid = exposure.valid_box
+        assert valid is not None and exposure.mask is not None  # filled by Exposure
+        if not valid.contains_box(footprint):
+            return None
+        candidate = dataclasses.replace(
+            found,
+            mapping=mapping,
+            footprint=footprint,
+            bad=(exposure.mask[footprint.slices] & bad_bits) != 0,
+        )
+        pixels = exposure_planes(candidate, self.config, self.seed, bad_bits)
+        if pixels is None:
+            return None
+        mask = translated_mask(exposure, footprint, self.mask_bits)
+        return warped_contribution(candidate, pixels, mask, self.config.n_noise)
+
+    def _use(
+        self,
+        i: int,
+        exposure: Exposure,
+        found: Candidate | Rejection,
+        bad_bits: int,
+        psf_stamp: np.ndarray | None = None,
+    ) -> None:
+        """Warp ``exposure`` for cell ``i`` alone, if selection accepted it."""
+        if isinstance(found, Rejection):
+            self._reject(i, exposure, found)
+            return
+        pixels = exposure_planes(found, self.config, self.seed, bad_bits)
+        if pixels is None:  # a hole too large to interpolate
+            status = Rejection(InputStatus.MASKED_FRACTION, found.overlap_fraction)
+            self._reject(i, exposure, status)
+            return
+        if psf_stamp is None:
+            try:
+                psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.psf_size)
+            except PsfError:
+                self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
+                return
+        mask = translated_mask(exposure, found.footprint, self.mask_bits)
+        planes, warped_mask = warped_contribution(found, pixels, mask, self.config.n_noise)
+        self._accept(i, exposure, found, planes, warped_mask, psf_stamp)
+
+    def _accept(
+        self,
+        i: int,
+        exposure: Exposure,
+        found: Candidate,
+        planes: np.ndarray,
+        mask: np.ndarray,
+        psf_stamp: np.ndarray,
+    ) -> None:
+        self.sums[i].add(planes, mask, psf_stamp, found.weight)
+        moments = psf_moments(psf_stamp, self.jacobians[i])
+        self.records[i].append(
+            input_record(
+                exposure,
+                InputStatus.USED,
+                weight=found.weight,
+                overlap_fraction=found.overlap_fraction,
+                **moments,
+            )
+        )
+
+    def _reject(self, i: int, exposure: Exposure, rejection: Rejection) -> None:
+        self.records[i].append(
+            input_record(exposure, rejection.status, overlap_fraction=rejection.overlap_fraction)
+        )
+
+    def finish(self) -> list[CellCoadd]:
+        """The coadds of the cells, in the order given."""
+        results = []
+        for cell, sums, records in zip(self.cells, self.sums, self.records, strict=True):
+            self.current = cell
+            results.append(finish_cell(cell, sums, records, self.config, self.mask_bits))
+        return results
+
+
+def _partial_record(
+    frame: ExposureFrame, box: Box, header: Exposure | ExposureHeader
+) -> InputRecord:
+    """The record of a cell reaching beyond the exposure's projected valid box: it cannot
+    be covered (``edge``), or does not overlap at all (``no_overlap``)."""
+    assert frame.mapping is not None and header.valid_box is not None
+    part = frame.mapping.restricted(box.intersection(frame.region))
+    inside = np.count_nonzero(header.valid_box.contains(part.x, part.y))
+    fraction = inside / (box.nx * box.ny)
+    status = InputStatus.EDGE if inside else InputStatus.NO_OVERLAP
+    return input_record(header, status, overlap_fraction=fraction)
+
+
+def build_cells(
+    cells: Sequence[Cell],
+    exposures: Sequence[Input],
+    config: BuildConfig | None = None,
+    seed: int = 0,
+    *,
+    mask_bits: MaskBits | None = None,
+    band: str | None = None,
+    area: Box | None = None,
+    frames: Sequence[ExposureFrame | None] | None = None,
+) -> list[CellCoadd]:
+    """Coadd the exposures that fully cover each of ``cells`` (one tract) into cell coadds.
+
+    Each exposure is mapped once over ``area`` and warped once over the cells that accept
+    it (see the module notes); the result of a cell does not depend on which other cells
+    are built with it. Parameters as for :func:`build_cell`, and:
+
+    area : Box, optional
+        Tract pixels the exposures are mapped over (default: the bounding box of the
+        cells' outer boxes).
+    frames : sequence of ExposureFrame or None, optional
+        The exposures' frames over ``area`` (aligned with ``exposures``), if already
+        computed (e.g. once per patch); None entries are computed here.
+
+    Returns
+    -------
+    list of CellCoadd
+        In the order of ``cells``.
+    """
+    config = config or BuildConfig()
+    inputs = [describe(item) for item in exposures]
+    headers = [header_of(item) for item in inputs]
+    check_unique_inputs(headers)
+    check_mask_bits(headers, config)
+    mask_bits = mask_bits or MaskBits.union(header.mask_bits for header in headers)
+    band = band if band is not None else (headers[0].band if headers else None)
+    block = CellBlock(cells, config, seed, mask_bits, band, area)
+    frames = frames if frames is not None else [None] * len(inputs)
+    for item, frame in zip(inputs, frames, strict=True):
+        block.add(item, frame)
+    return block.finish()
 
 
 def build_cell(
@@ -211,126 +481,16 @@ def build_cell(
         fluxes are conserved). A cell with no usable
         input is returned with ``is_empty=True``, a NaN image and a NO_DATA mask.
     """
-    config = config or BuildConfig()
-    inputs = [describe(item) for item in exposures]
-    headers = [header_of(item) for item in inputs]
-    check_unique_inputs(headers)
-    if config.psf_size > min(cell.outer_bbox.shape):
-        raise ValueError(f"psf_size {config.psf_size} exceeds the cell outer box {cell.outer_bbox}")
-    check_mask_bits(headers, config)
-    mask_bits = mask_bits or MaskBits.union(header.mask_bits for header in headers)
-    sums = _Sums(cell.outer_bbox.shape, config.n_noise, config.psf_size)
-    records: list[InputRecord] = []
-    context = _CellContext(cell, config, seed, mask_bits)
-    band = band if band is not None else (headers[0].band if headers else None)
-    for item, header in zip(inputs, headers, strict=True):
-        if header.band != band:
-            records.append(_record(header, InputStatus.BAND_MISMATCH))
-            continue
-        near = rough_exposure_box(cell, header)
-        if near is None:
-            records.append(_record(header, InputStatus.NO_OVERLAP))
-            continue
-        exposure = item if isinstance(item, Exposure) else item.load(near.grow(SOURCE_MARGIN))
-        records.append(_contribute(context, exposure, sums))
-    return _finish(cell, sums, records, config, mask_bits)
+    return build_cells([cell], exposures, config, seed, mask_bits=mask_bits, band=band)[0]
 
 
-class _CellContext:
-    """What every input of one cell shares: the cell, settings, seed, output bits, the
-    cell's Jacobian (for PSF moments) and its mapping grids."""
-
-    def __init__(self, cell: Cell, config: BuildConfig, seed: int, mask_bits: MaskBits):
-        self.cell, self.config, self.seed, self.mask_bits = cell, config, seed, mask_bits
-        self.jacobian = _cell_jacobian(cell)
-        self.grid_cache: dict = {}  # mapping grids, the same for every exposure of the cell
-
-
-def _contribute(context: _CellContext, exposure: Exposure, sums: _Sums) -> InputRecord:
-    """Select ``exposure`` for the cell and, if it is usable, add it to ``sums``."""
-    cell, config = context.cell, context.config
-    bad_bits = exposure.mask_bits.mask_of(
-        name for name in config.bad_mask_bits if name in exposure.mask_bits.bits
-    )
-    found = select_exposure(cell, exposure, config, bad_bits, grid_cache=context.grid_cache)
-    if isinstance(found, Rejection):
-        return _record(exposure, found.status, overlap_fraction=found.overlap_fraction)
-    overlap = found.overlap_fraction
-    pixels = exposure_planes(found, config, context.seed, bad_bits)
-    if pixels is None:  # a hole too large to interpolate
-        return _record(exposure, InputStatus.MASKED_FRACTION, overlap_fraction=overlap)
-    try:
-        psf_stamp = _coadd_psf_contribution(cell, found, config.psf_size)
-    except PsfError:
-        return _record(exposure, InputStatus.BAD_PSF, overlap_fraction=overlap)
-    mask = translated_mask(exposure, found.footprint, context.mask_bits)
-    _add_exposure(sums, found, pixels, mask, psf_stamp, config.n_noise)
-    moments = psf_moments(psf_stamp, context.jacobian)
-    return _record(
-        exposure, InputStatus.USED, weight=found.weight, overlap_fraction=overlap, **moments
-    )
-
-
-def _cell_jacobian(cell: Cell) -> np.ndarray:
-    from cellcoadd.geometry.wcs_utils import local_jacobian
-
-    ny, nx = cell.outer_bbox.shape
-    return local_jacobian(cell.wcs, nx // 2, ny // 2)
-
-
-def _finish(
-    cell: Cell,
-    sums: _Sums,
-    records: list[InputRecord],
-    config: BuildConfig,
-    mask_bits: MaskBits,
-) -> CellCoadd:
-    common = {
-        "inputs": records,
-        "tract": cell.tract,
-        "index": cell.index,
-        "inner_bbox": cell.inner_bbox,
-        "outer_bbox": cell.outer_bbox,
-        "wcs": cell.wcs,
-    }
-    if sums.weight <= 0.0:
-        return CellCoadd.empty(
-            n_noise=config.n_noise, psf_size=config.psf_size, mask_bits=mask_bits, **common
-        )
-    total = sums.weight
-    psf = sums.psf / sums.psf.sum()
-    planes = {
-        "image": (sums.image / total).astype(np.float32),
-        "variance": (sums.variance / total**2).astype(np.float32),
-        "noise": (sums.noise / total).astype(np.float32),
-    }
-    _check_finite(cell, planes, sums.mask, mask_bits)
-    return CellCoadd(
-        **planes,
-        mask=sums.mask,
-        mfrac=np.clip(sums.mfrac / total, 0.0, 1.0).astype(np.float32),
-        psf=psf,
-        **common,
-    )
-
-
-def _check_finite(
-    cell: Cell, planes: dict[str, np.ndarray], mask: np.ndarray, mask_bits: MaskBits
-) -> None:
-    """Refuse (FloatingPointError) a coadd with non-finite pixels outside ``NO_DATA``.
-
-    Selection rejects inputs whose contribution could overflow float32 (``bad_pixels``),
-    so this does not happen; if it did, the cell fails by name instead of being written.
-    """
-    no_data = mask_bits.value("NO_DATA") if "NO_DATA" in mask_bits.bits else 0
-    covered = (mask & no_data) == 0
-    for name, plane in planes.items():
-        bad = ~np.isfinite(plane) & covered
-        if bad.any():
-            raise FloatingPointError(
-                f"cell {cell.index} of tract {cell.tract}: {int(bad.sum())} non-finite "
-                f"{name} pixels outside NO_DATA"
-            )
-
-
-__all__ = ["build_cell", "check_mask_bits", "check_unique_inputs"]
+__all__ = [
+    "SOURCE_MARGIN",
+    "CellBlock",
+    "bounding_box",
+    "build_cell",
+    "build_cells",
+    "check_mask_bits",
+    "check_unique_inputs",
+    "warped_contribution",
+]

@@ -123,6 +123,28 @@ class PixelMapping:
         max_error: float
         grid_step: int
 
+    def restricted(self, box: Box) -> PixelMapping:
+        """The mapping of the pixels of ``box`` (inside :attr:`box`), bit for bit the
+        values the whole mapping holds there, without evaluating the rest.
+
+        An interpolated mapping stays deferred: only ``box``'s pixels are interpolated, from
+        the same grid values with the same weights, so any sub-box gives the same numbers.
+        """
+        if not self.box.contains_box(box):
+            raise ValueError(f"{box} is not inside the mapped box {self.box}")
+        rows = slice(box.y_start - self.box.y_start, box.y_stop - self.box.y_start)
+        cols = slice(box.x_start - self.box.x_start, box.x_stop - self.box.x_start)
+
+        def part(name: str) -> np.ndarray | _Deferred:
+            value = self.__dict__["_" + name]
+            if isinstance(value, _Deferred):
+                return _Deferred(value.values, value.rows.sliced(rows), value.cols.sliced(cols))
+            return value[rows, cols]
+
+        return PixelMapping(
+            box, part("x"), part("y"), part("area_ratio"), self.max_error, self.grid_step
+        )
+
     @property
     def is_complete(self) -> bool:
         """Whether every pixel of the box has a finite exposure position."""
@@ -210,6 +232,10 @@ class _CubicBasis(NamedTuple):
 
     first: np.ndarray  # int64 (n,): first of the four nodes used by each position
     weights: np.ndarray  # float64 (n, 4)
+
+    def sliced(self, positions: slice) -> _CubicBasis:
+        """The weights of a run of the positions."""
+        return _CubicBasis(self.first[positions], self.weights[positions])
 
 
 def _cubic_basis(nodes: np.ndarray, positions: np.ndarray) -> _CubicBasis:
@@ -422,6 +448,25 @@ def map_box(
         With ``max_error <= tolerance``. Pixels outside the exposure's projection (or
         where its inverse does not converge) get NaN: check ``is_complete``.
     """
+    mapping = grid_mapping(
+        coadd_wcs, box, exposure_wcs, tolerance, grid_step, area_tolerance, grid_cache=grid_cache
+    )
+    return mapping if mapping is not None else _exact_mapping(coadd_wcs, box, exposure_wcs)
+
+
+def grid_mapping(
+    coadd_wcs: WCS,
+    box: Box,
+    exposure_wcs: WCS,
+    tolerance: float = 1e-3,
+    grid_step: int = 32,
+    area_tolerance: float = 1e-6,
+    *,
+    grid_cache: dict | None = None,
+) -> PixelMapping | None:
+    """:func:`map_box` from an interpolation grid only: None where :func:`map_box` would
+    evaluate every pixel exactly (no verified grid; part of the box off the exposure's
+    projection), which for a large box is slow and memory-hungry."""
     if not tolerance > 0 or not area_tolerance > 0:
         raise ValueError("tolerance and area_tolerance must be positive")
     if grid_step < 1:
@@ -442,7 +487,7 @@ def map_box(
             if not finite:
                 break
             step //= 2
-    return _exact_mapping(coadd_wcs, box, exposure_wcs)
+    return None
 
 
 def footprint_box(mapping: PixelPositions, half_width: int = KERNEL_HALF_WIDTH) -> Box:

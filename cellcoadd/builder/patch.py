@@ -1,14 +1,18 @@
 """Coadding every cell of a patch, in parallel on any ``concurrent.futures`` executor.
 
-Each cell is an independent task that receives only the exposures near it; its result
-depends only on its inputs and the seed, so the patch is bit-identical whatever the
-executor and the number of workers. Inputs are sent to each worker once, never with
-every task: a process pool created here installs them in each process (its initializer)
-and tasks carry indices; on a dask cluster they are scattered once, then copied to every
-worker, and tasks carry references to them. Inputs given as exposure sources
+Each exposure is mapped once onto the patch (:func:`~cellcoadd.builder.exposure_frame.
+exposure_frame`, from its header, here); the cells are then built in blocks of
+neighbours, each block an independent task that receives only the exposures near it and
+warps each of them once for all its cells (:class:`~cellcoadd.builder.cell.CellBlock`). A
+cell's result depends only on its inputs, their mapping over the patch and the seed, not
+on its block, so the patch is bit-identical whatever the executor, the number of workers
+and hence the blocks. Inputs are sent to each worker once, never with every task: a
+process pool created here installs them in each process (its initializer) and tasks carry
+indices; on a dask cluster they are scattered once, then copied to every worker, and
+tasks carry references to them. Inputs given as exposure sources
 (:class:`~cellcoadd.model.sources.ExposureSource`: paths and options) weigh nothing:
 which cells they serve is decided from their headers, and each worker loads the pixels
-it needs, one exposure cut to one cell at a time, so memory does not grow with the
+it needs, one exposure cut to one block at a time, so memory does not grow with the
 number of exposures and no pixel crosses a process boundary except finished cells. A
 failing cell stops the build with an error naming the cell and carrying the worker's
 traceback.
@@ -17,6 +21,7 @@ traceback.
 from __future__ import annotations
 
 import contextlib
+import math
 import traceback
 from collections.abc import Sequence
 from concurrent.futures import (
@@ -26,15 +31,18 @@ from concurrent.futures import (
     ProcessPoolExecutor,
     as_completed,
 )
+from dataclasses import dataclass
 from typing import Any
 
 from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
-from cellcoadd.builder.cell import build_cell, check_mask_bits, check_unique_inputs
+from cellcoadd.builder.cell import CellBlock, check_mask_bits, check_unique_inputs
 from cellcoadd.builder.executors import dask_client, resolve_executor
-from cellcoadd.builder.select import exposures_near_cells, rough_exposure_box
+from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
+from cellcoadd.builder.select import exposures_near_cells
 from cellcoadd.errors import CellBuildError
+from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -46,32 +54,57 @@ from cellcoadd.model.sources import DescribedSource, ExposureSource, describe, h
 
 Input = Exposure | DescribedSource
 
-# The inputs of the build, installed once in each process of a pool this module creates
-# (its initializer), so that cell tasks carry input indices instead of pixels.
-# Per-process transport state only: every result depends on the task's arguments alone.
-_pool_inputs: list[Input] = []
+#: Largest block of cells built together (per side): bounds a block's memory, e.g. 64
+#: cells of 250 x 250 px with 3 noise realizations hold ~190 MB of float64 sums.
+MAX_BLOCK_SIDE = 8
+
+# The inputs of the build and their frames, installed once in each process of a pool this
+# module creates (its initializer), so that block tasks carry input indices instead of
+# pixels. Per-process transport state only: every result depends on the task's arguments.
+_pool_inputs: list[tuple[Input, ExposureFrame]] = []
 
 
-def _install_inputs(inputs: list[Input]) -> None:
+def _install_inputs(inputs: list[tuple[Input, ExposureFrame]]) -> None:
     _pool_inputs[:] = inputs
 
 
-def _build_one(
-    cell: Cell,
-    candidates: Sequence[Input | int],
+#: One task: the cells of a block and their candidate inputs (with their frames), or the
+#: indices of those in the pool's table.
+Task = tuple[list[Cell], Sequence[tuple[Input, ExposureFrame] | int]]
+
+
+def _build_block(
+    cells: list[Cell],
+    candidates: Sequence[tuple[Input, ExposureFrame] | int],
     config: BuildConfig,
     seed: int,
     mask_bits: MaskBits,
-) -> CellCoadd:
-    """Build one cell from its candidate inputs (or their indices in the pool table)."""
+    band: str,
+    area: Box,
+) -> list[CellCoadd]:
+    """Build the cells of one block from their candidate inputs (or indices of them)."""
+    block = None
     try:
-        inputs = [_pool_inputs[i] if isinstance(i, int) else i for i in candidates]
-        # the cheap batched search over-selects; the exact test decides, here in the task
-        near = [e for e in inputs if rough_exposure_box(cell, header_of(e)) is not None]
-        return build_cell(cell, near, config, seed, mask_bits=mask_bits)
+        block = CellBlock(cells, config, seed, mask_bits, band, area, record_distant=False)
+        for candidate in candidates:
+            item, frame = _pool_inputs[candidate] if isinstance(candidate, int) else candidate
+            block.add(item, frame)
+        return block.finish()
     except Exception as err:
         # the traceback text travels with the error across process boundaries
+        cell = block.current if block is not None else cells[0]
         raise _cell_failed(cell, err, "\n" + traceback.format_exc()) from None
+
+
+def blocks_of(cells: Sequence[Cell], n_tasks: int) -> list[list[Cell]]:
+    """Square blocks of neighbouring cells, at least ``n_tasks`` of them when there are
+    enough cells, at most :data:`MAX_BLOCK_SIDE` cells on a side (cells in row-major order
+    within a block, blocks in row-major order)."""
+    side = max(1, min(MAX_BLOCK_SIDE, math.isqrt(max(1, len(cells) // max(1, n_tasks)))))
+    groups: dict[tuple[int, int], list[Cell]] = {}
+    for cell in sorted(cells, key=lambda c: (c.index[1], c.index[0])):
+        groups.setdefault((cell.index[1] // side, cell.index[0] // side), []).append(cell)
+    return [groups[key] for key in sorted(groups)]
 
 
 def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuildError:
@@ -81,34 +114,54 @@ def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuild
     )
 
 
+@dataclass(frozen=True)
+class _Settings:
+    """What every block of one patch build shares."""
+
+    config: BuildConfig
+    seed: int
+    mask_bits: MaskBits
+    band: str
+    area: Box
+
+    def run(self, cells: list[Cell], candidates: Sequence[Any]) -> list[CellCoadd]:
+        return _build_block(
+            cells, candidates, self.config, self.seed, self.mask_bits, self.band, self.area
+        )
+
+
+def _collect(
+    cells: list[Cell], built: list[CellCoadd], results: dict[tuple[int, int], CellCoadd]
+) -> None:
+    for cell, coadd in zip(cells, built, strict=True):
+        results[cell.index] = coadd
+
+
 def _run_on(
     pool: Executor,
-    tasks: Sequence[tuple[Cell, Sequence[Input | int]]],
-    config: BuildConfig,
-    seed: int,
-    mask_bits: MaskBits,
+    tasks: Sequence[Task],
+    settings: _Settings,
     results: dict[tuple[int, int], CellCoadd],
     bar: tqdm,
 ) -> None:
-    """Build the cells of ``tasks`` on ``pool`` into ``results``; on the first failure,
+    """Build the blocks of ``tasks`` on ``pool`` into ``results``; on the first failure,
     cancel what has not started and raise a CellBuildError naming the cell."""
-    submitted: list[tuple[Future, Cell]] = [
-        (pool.submit(_build_one, cell, candidates, config, seed, mask_bits), cell)
-        for cell, candidates in tasks
+    submitted: list[tuple[Future, list[Cell]]] = [
+        (pool.submit(settings.run, cells, candidates), cells) for cells, candidates in tasks
     ]
-    cells = dict(submitted)
+    blocks = dict(submitted)
     try:
-        for future in as_completed(cells):
-            cell = cells[future]
+        for future in as_completed(blocks):
+            cells = blocks[future]
             try:
-                results[cell.index] = future.result()
+                _collect(cells, future.result(), results)
             except CellBuildError:
                 raise
             except BrokenExecutor as err:
                 raise CellBuildError(_died_message(submitted, err)) from err
-            except Exception as err:  # e.g. dask's KilledWorker: names this very cell
-                raise _cell_failed(cell, err) from err
-            bar.update()
+            except Exception as err:  # e.g. a result that could not be sent back
+                raise _cell_failed(cells[0], err) from err
+            bar.update(len(cells))
     except BaseException:
         for future, _ in submitted:
             future.cancel()
@@ -117,46 +170,43 @@ def _run_on(
 
 def _run_on_dask(
     client: Any,
-    tasks: Sequence[tuple[Cell, Sequence[Input | int]]],
-    exposures: list[Input],
-    config: BuildConfig,
-    seed: int,
-    mask_bits: MaskBits,
+    tasks: Sequence[Task],
+    inputs: list[tuple[Input, ExposureFrame]],
+    settings: _Settings,
     results: dict[tuple[int, int], CellCoadd],
     bar: tqdm,
 ) -> None:
-    """Build the cells of ``tasks`` (cell, indices of its candidate exposures) on the dask
-    cluster of ``client`` into ``results``; on the first failure, cancel the cells not yet
-    built and raise a CellBuildError naming the cell.
+    """Build the blocks of ``tasks`` (cells, indices of their candidate inputs) on the
+    dask cluster of ``client`` into ``results``; on the first failure, cancel the blocks
+    not yet built and raise a CellBuildError naming the cell.
 
-    Every exposure is sent once to the workers, then copied to all of them; a task's
-    arguments are its cell and the futures of its exposures, which the worker resolves
-    from its own memory, so no pixels travel with a task. The exposures are released at
+    Every input is sent once to the workers, then copied to all of them; a task's
+    arguments are its cells and the futures of its inputs, which the worker resolves
+    from its own memory, so no pixels travel with a task. The inputs are released at
     the end.
     """
     from distributed import as_completed as dask_as_completed  # optional: the dask extra
 
-    # each exposure to one worker (hash=False: no tokenizing of pixels, keys private to this
+    # each input to one worker (hash=False: no tokenizing of pixels, keys private to this
     # build); copying them to every worker comes after the tasks are queued, so the first
-    # cells build during the copy instead of after it, as they would with a broadcast
-    table = client.scatter(exposures, hash=False)
-    pending: dict[str, tuple[Any, Cell]] = {}
+    # blocks build during the copy instead of after it, as they would with a broadcast
+    table = client.scatter(inputs, hash=False)
+    pending: dict[str, tuple[Any, list[Cell]]] = {}
     try:
-        for cell, indices in tasks:
-            future = client.submit(
-                _build_one, cell, [table[i] for i in indices], config, seed, mask_bits, pure=False
-            )
-            pending[future.key] = (future, cell)
+        for cells, indices in tasks:
+            candidates = [table[i] for i in indices]
+            future = client.submit(settings.run, cells, candidates, pure=False)
+            pending[future.key] = (future, cells)
         _replicate(client, table)
         for future in dask_as_completed([future for future, _ in pending.values()]):
-            _, cell = pending.pop(future.key)  # dropped once read: frees the worker's copy
+            _, cells = pending.pop(future.key)  # dropped once read: frees the worker's copy
             try:
-                results[cell.index] = future.result()
+                _collect(cells, future.result(), results)
             except CellBuildError:
                 raise
-            except Exception as err:  # e.g. KilledWorker: names this very cell
-                raise _cell_failed(cell, err) from err
-            bar.update()
+            except Exception as err:  # e.g. KilledWorker: names the block's first cell
+                raise _cell_failed(cells[0], err) from err
+            bar.update(len(cells))
     except BaseException:
         client.cancel([future for future, _ in pending.values()])
         raise
@@ -175,18 +225,22 @@ def _replicate(client: Any, futures: list[Any]) -> None:
         client.replicate(futures)
 
 
-def _died_message(submitted: list[tuple[Future, Cell]], err: BaseException) -> str:
+def _died_message(submitted: list[tuple[Future, list[Cell]]], err: BaseException) -> str:
     """Name the cell a dead worker process was building, as far as it can be known.
 
     A broken process pool fails every unfinished future at once without saying which
     task killed its worker. Tasks start in submission order, so the earliest-submitted
-    unfinished cell had started: it is named, with the next unfinished ones (one of which
-    may have been the task that died instead).
+    unfinished block had started: its first cell is named, with the other cells of that
+    block and the first cells of the next unfinished blocks (one of which may have been
+    the task that died instead).
     """
-    unfinished = [cell for future, cell in submitted if _broken_or_pending(future)]
-    first = unfinished[0] if unfinished else submitted[0][1]
-    others = ", ".join(str(cell.index) for cell in unfinished[1:4])
-    after = f" or one started after it ({others}...)" if others else ""
+    unfinished = [cells for future, cells in submitted if _broken_or_pending(future)]
+    block = unfinished[0] if unfinished else submitted[0][1]
+    first = block[0]
+    suspects = [str(cell.index) for cell in block[1:]] + [
+        str(cells[0].index) for cells in unfinished[1:4]
+    ]
+    after = f" or one built with or after it ({', '.join(suspects)})" if suspects else ""
     return (
         f"cell {first.index} of tract {first.tract} failed: a worker process died while "
         f"building it{after}: {type(err).__name__}: {err}"
@@ -197,6 +251,16 @@ def _broken_or_pending(future: Future) -> bool:
     if not future.done():
         return True
     return not future.cancelled() and isinstance(future.exception(), BrokenExecutor)
+
+
+def _task_count(pool: Executor | None, client: Any, workers: int) -> int:
+    """How many blocks to cut a patch into: one in this process, else two per worker so
+    that blocks of unequal cost balance out (results do not depend on it)."""
+    if client is not None:
+        return 2 * max(1, sum(client.nthreads().values()))
+    if pool is None:
+        return 1
+    return 2 * max(1, int(getattr(pool, "_max_workers", workers)))
 
 
 def build_patch(
@@ -278,31 +342,42 @@ def build_patch(
     mask_bits = MaskBits.union(header.mask_bits for header in headers)
     cells = patch.cells
     near = exposures_near_cells(cells, headers)
+    area = patch.outer_bbox
+    tract_wcs = patch.tract.wcs
+    # each exposure mapped once onto the patch, from its header: shared by every block
+    framed = [
+        (item, exposure_frame(tract_wcs, area, header, config.mapping_tolerance))
+        for item, header in zip(inputs, headers, strict=True)
+    ]
     client = pool = None
     if executor is None and scheduler is not None:
         client, release = dask_client(scheduler)
     else:
         pool, release = resolve_executor(
-            executor, workers, scheduler, initializer=_install_inputs, initargs=(inputs,)
+            executor, workers, scheduler, initializer=_install_inputs, initargs=(framed,)
         )
     # a pool made here holds the inputs and dask receives them once: tasks name them by
     # index; a given executor gets the inputs with each task
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
-    tasks = [
-        (cell, indices if owned or client is not None else [inputs[i] for i in indices])
-        for cell, indices in zip(cells, near, strict=True)
-    ]
+    by_index = {cell.index: indices for cell, indices in zip(cells, near, strict=True)}
+    tasks: list[Task] = []
+    for block in blocks_of(cells, _task_count(pool, client, workers)):
+        indices = sorted({i for cell in block for i in by_index[cell.index]})
+        tasks.append(
+            (block, indices if owned or client is not None else [framed[i] for i in indices])
+        )
+    settings = _Settings(config, seed, mask_bits, bands[0], area)
     results: dict[tuple[int, int], CellCoadd] = {}
-    bar = tqdm(total=len(tasks), desc=f"patch {patch.index}", unit="cell", disable=not progress)
+    bar = tqdm(total=len(cells), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if client is not None:
-            _run_on_dask(client, tasks, inputs, config, seed, mask_bits, results, bar)
+            _run_on_dask(client, tasks, framed, settings, results, bar)
         elif pool is None:
-            for cell, candidates in tasks:
-                results[cell.index] = _build_one(cell, candidates, config, seed, mask_bits)
-                bar.update()
+            for block, candidates in tasks:
+                _collect(block, settings.run(block, candidates), results)
+                bar.update(len(block))
         else:
-            _run_on(pool, tasks, config, seed, mask_bits, results, bar)
+            _run_on(pool, tasks, settings, results, bar)
     finally:
         bar.close()
         if release is not None:

@@ -150,6 +150,7 @@ def select_exposure(
     bad_bits: int,
     *,
     grid_cache: dict | None = None,
+    mapping: PixelMapping | None = None,
 ) -> Candidate | Rejection:
     """Decide whether ``exposure`` can be used for ``cell``.
 
@@ -158,19 +159,21 @@ def select_exposure(
     reusing its mapping grids (see :func:`map_box`). Far exposures are best left out
     first with the cheap :func:`rough_exposure_box`, as
     :func:`cellcoadd.builder.cell.build_cell` does; here
-    they end as ``no_overlap`` too, after the mapping.
+    they end as ``no_overlap`` too, after the mapping. ``mapping``: the cell's pixels
+    already mapped into ``exposure`` (e.g. a part of an exposure's mapping over a whole
+    patch, see :mod:`cellcoadd.builder.exposure_frame`); by default they are mapped here.
     """
-    outer = Box.from_shape(cell.outer_bbox.shape)
-    try:
-        mapping = map_box(
-            cell.wcs,
-            outer,
-            exposure.wcs,
-            tolerance=config.mapping_tolerance,
-            grid_cache=grid_cache,
-        )
-    except WCS_ERRORS:
-        return Rejection(InputStatus.NO_OVERLAP)
+    if mapping is None:
+        try:
+            mapping = map_box(
+                cell.wcs,
+                Box.from_shape(cell.outer_bbox.shape),
+                exposure.wcs,
+                tolerance=config.mapping_tolerance,
+                grid_cache=grid_cache,
+            )
+        except WCS_ERRORS:
+            return Rejection(InputStatus.NO_OVERLAP)
     valid = exposure.valid_box
     assert valid is not None  # Exposure.__post_init__ fills it
     x, y = mapping.x, mapping.y

@@ -65,7 +65,7 @@ def build(
     (LSST, DES, other multi-extension layouts) listed in a --manifest with their PSF
     model files. Everything that can be checked is checked before the build: the output
     path, every input's headers, the mask bits the configuration needs. Pixels are read
-    by the workers, one exposure cut to one cell at a time.
+    by the workers, one exposure cut to one block of cells at a time.
 
     \b
     Examples:

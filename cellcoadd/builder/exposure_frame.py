@@ -1,0 +1,129 @@
+"""Where one exposure lands on the tract's pixel grid, mapped once for a whole area.
+
+All cells of a tract share its pixel grid, so the position in an exposure of a tract pixel
+does not depend on the cell that pixel is seen from. :func:`exposure_frame` projects the
+exposure's valid box into tract pixels once, and maps the part of an area (a patch) it
+may serve onto the exposure with one verified interpolation grid
+(:func:`~cellcoadd.builder.mapping.grid_mapping`). Every cell then takes its pixels from
+that one mapping (:meth:`~cellcoadd.builder.mapping.PixelMapping.restricted`), so
+overlapping cells see the same positions bit for bit, whichever process builds them, and
+no WCS is evaluated per cell.
+
+Conventions: 0-based tract pixels with centres at integers, half-open boxes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from astropy.wcs import WCS
+
+from cellcoadd.builder.mapping import PixelMapping, grid_mapping
+from cellcoadd.builder.select import WCS_ERRORS
+from cellcoadd.geometry.box import Box
+from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.sources import ExposureHeader
+
+#: Points sampled along each side of the valid box when it is projected into the tract.
+_POINTS_PER_SIDE = 33
+#: Tract pixels added around the projected valid box: the bulge of a distorted edge
+#: between samples is far below this.
+_REGION_MARGIN = 4
+
+_EMPTY = Box(x_start=0, x_stop=0, y_start=0, y_stop=0)
+
+
+@dataclass(frozen=True, eq=False)
+class ExposureFrame:
+    """One exposure's place on the tract grid within an area.
+
+    Attributes
+    ----------
+    region : Box
+        Tract pixels of the area that may map into the exposure's valid box (empty: the
+        exposure serves none of the area).
+    mapping : PixelMapping or None
+        Exposure pixel positions (in the header's frame) of the pixels of ``region``,
+        deferred: a part is interpolated only when asked for. None when no verified grid
+        covers the region (part of it off the exposure's projection); cells then map
+        themselves, one at a time.
+    """
+
+    region: Box
+    mapping: PixelMapping | None
+
+    @property
+    def serves_nothing(self) -> bool:
+        """Whether no pixel of the area can map into the exposure."""
+        return self.region.is_empty
+
+    def covers(self, box: Box) -> bool:
+        """Whether ``box`` (tract pixels) lies inside the shared mapping."""
+        return self.mapping is not None and self.region.contains_box(box)
+
+
+def projected_valid_box(tract_wcs: WCS, exposure: Exposure | ExposureHeader) -> Box | None:
+    """Tract pixels around the exposure's valid box, from points along its edges.
+
+    Returns None when some edge point has no tract position (a WCS failure): the caller
+    then maps cell by cell; an empty box when none has (the exposure is on the far side
+    of the sky from the tract).
+    """
+    valid = exposure.valid_box
+    assert valid is not None  # both Exposure and ExposureHeader fill it
+    # pixel edges of the valid box: centres at integers, so edges at -0.5 offsets
+    xs = np.linspace(valid.x_start - 0.5, valid.x_stop - 0.5, _POINTS_PER_SIDE)
+    ys = np.linspace(valid.y_start - 0.5, valid.y_stop - 0.5, _POINTS_PER_SIDE)
+    x = np.concatenate([xs, xs, np.full_like(ys, xs[0]), np.full_like(ys, xs[-1])])
+    y = np.concatenate([np.full_like(xs, ys[0]), np.full_like(xs, ys[-1]), ys, ys])
+    try:
+        ra, dec = exposure.wcs.all_pix2world(x, y, 0)
+        tx, ty = tract_wcs.all_world2pix(ra, dec, 0)
+    except WCS_ERRORS:
+        return None
+    finite = np.isfinite(tx) & np.isfinite(ty)
+    if not finite.any():
+        return _EMPTY
+    if not finite.all():
+        return None
+    return Box(
+        x_start=int(np.floor(tx.min())) - _REGION_MARGIN,
+        x_stop=int(np.ceil(tx.max())) + _REGION_MARGIN + 1,
+        y_start=int(np.floor(ty.min())) - _REGION_MARGIN,
+        y_stop=int(np.ceil(ty.max())) + _REGION_MARGIN + 1,
+    )
+
+
+def exposure_frame(
+    tract_wcs: WCS, area: Box, exposure: Exposure | ExposureHeader, tolerance: float
+) -> ExposureFrame:
+    """Map the part of ``area`` (tract pixels) that ``exposure`` may serve, once.
+
+    Parameters
+    ----------
+    tract_wcs : astropy.wcs.WCS
+        The tract's WCS (0-based tract pixels).
+    area : Box
+        Tract pixels to be built (e.g. the union of a patch's cell outer boxes). The
+        mapping depends on ``area`` and the exposure only: every cell of the area gets
+        the same positions from it.
+    exposure : Exposure or ExposureHeader
+        Its WCS and valid box are used.
+    tolerance : float
+        Position tolerance of the mapping, exposure px (``BuildConfig.mapping_tolerance``).
+    """
+    projected = projected_valid_box(tract_wcs, exposure)
+    if projected is None:
+        return ExposureFrame(area, None)
+    if not projected.overlaps(area):
+        return ExposureFrame(_EMPTY, None)
+    region = projected.intersection(area)
+    try:
+        mapping = grid_mapping(tract_wcs, region, exposure.wcs, tolerance)
+    except WCS_ERRORS:
+        mapping = None
+    return ExposureFrame(region, mapping)
+
+
+__all__ = ["ExposureFrame", "exposure_frame", "projected_valid_box"]

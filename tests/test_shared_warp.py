@@ -1,0 +1,152 @@
+"""Each exposure mapped once per patch and warped once per block of cells.
+
+A tract pixel gets the same contribution from an exposure whichever cell, block or process
+builds it: overlapping cells that accepted the same inputs hold identical pixels, and a
+patch is the same however its cells are grouped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+from exposure_factory import make_exposure
+
+from cellcoadd import BuildConfig, MaskBits, SkyMap, SkyMapConfig, build_patch
+from cellcoadd.builder.cell import CellBlock, build_cells
+from cellcoadd.builder.exposure_frame import exposure_frame, projected_valid_box
+from cellcoadd.builder.mapping import map_box
+from cellcoadd.geometry.box import Box
+
+CONFIG = SkyMapConfig(cell_inner=30, cell_border=12, cells_per_patch=4, patches_per_tract=1)
+BUILD = BuildConfig(n_noise=2, psf_size=21, units="count", zero_point=30.0)
+VARIANTS = [
+    dict(pixel_scale=0.26, rotation_deg=0.0, offset=(0.3, -0.2)),
+    dict(pixel_scale=0.2, rotation_deg=33.0, offset=(-0.4, 0.1), shape=(150, 170)),
+    dict(pixel_scale=0.24, rotation_deg=-71.0, offset=(0.1, 0.45), shape=(120, 200)),
+    dict(pixel_scale=0.26, rotation_deg=12.0, offset=(0.25, 0.25), shear=0.02, sip=True),
+]
+BITS = MaskBits(bits={"BAD": 0, "CR": 1, "SAT": 2, "NO_DATA": 3, "EDGE": 4})
+
+
+@pytest.fixture(scope="module")
+def patch():
+    return SkyMap.from_centers([(30.0, -10.0)], CONFIG)[0].patch(0, 0)
+
+
+@pytest.fixture(scope="module")
+def exposures(patch):
+    """Four exposures, some not covering every cell, with bad columns and cosmic rays."""
+    ra, dec = patch.tract.pixel_to_sky([60.0], [60.0])
+    out = []
+    for visit, variant in enumerate(VARIANTS):
+        variant = {"shape": (280, 280), **variant}
+        exposure = make_exposure(
+            (float(ra[0]) + 0.0004 * visit, float(dec[0])),
+            visit=visit,
+            noise_sigma=1.0,
+            sky=3.0,
+            seed=visit,
+            **variant,
+        )
+        mask = np.zeros(exposure.image.shape, dtype=np.int32)
+        mask[:, 70 + 20 * visit] = 1  # a bad column
+        mask[60 + visit, 100:102] = 2  # a cosmic ray
+        out.append(dataclasses.replace(exposure, mask=mask, mask_bits=BITS))
+    return out
+
+
+@pytest.fixture(scope="module")
+def serial(patch, exposures):
+    return build_patch(patch, exposures, BUILD, seed=4, progress=False)
+
+
+def _used(cell):
+    return [(r.visit, r.detector) for r in cell.inputs if r.status == "used"]
+
+
+def test_overlapping_cells_with_the_same_inputs_hold_the_same_pixels(serial):
+    compared = partial_inputs = 0
+    for a, b in itertools.combinations(serial.cells.values(), 2):
+        common = (
+            a.outer_bbox.intersection(b.outer_bbox) if a.outer_bbox.overlaps(b.outer_bbox) else None
+        )
+        if common is None or not _used(a):
+            continue
+        if _used(a) != _used(b):
+            continue
+        ra, rb = common.slices_in(a.outer_bbox), common.slices_in(b.outer_bbox)
+        for name in ("image", "variance", "mfrac", "mask"):
+            assert np.array_equal(getattr(a, name)[ra], getattr(b, name)[rb]), (a.index, b.index)
+        assert np.array_equal(a.noise[:, ra[0], ra[1]], b.noise[:, rb[0], rb[1]])
+        compared += 1
+        partial_inputs += len(_used(a)) < len(VARIANTS)
+    assert compared >= 40
+    assert partial_inputs > 0  # pairs where some exposure was rejected for both
+    statuses = {r.status for cell in serial.cells.values() for r in cell.inputs}
+    assert {"used", "edge"} <= statuses
+    assert max(cell.mfrac.max() for cell in serial.cells.values()) > 0  # bad pixels warped
+
+
+def test_a_patch_is_the_same_however_its_cells_are_grouped(patch, exposures, serial):
+    area = patch.outer_bbox
+    frames = [exposure_frame(patch.tract.wcs, area, e, BUILD.mapping_tolerance) for e in exposures]
+    mask_bits = serial.metadata.mask_bits
+    cells = patch.cells
+    for grouping in ([[c] for c in cells], [cells[::2], cells[1::2]], [cells[:7], cells[7:]]):
+        for group in grouping:
+            built = build_cells(
+                group, exposures, BUILD, seed=4, mask_bits=mask_bits, area=area, frames=frames
+            )
+            for cell in built:
+                assert cell.equals(serial.cells[cell.index]), cell.index
+    pooled = build_patch(patch, exposures, BUILD, seed=4, progress=False, workers=2)
+    for index, cell in serial.cells.items():
+        assert cell.equals(pooled.cells[index]), index
+
+
+def test_a_cell_built_alone_agrees_with_its_patch(patch, exposures, serial):
+    """Mapped over its own box instead of the patch, a cell differs by the mapping's
+    tolerance only."""
+    cell = patch.tract.cell(1, 1)
+    alone = build_cells([cell], exposures, BUILD, seed=4, mask_bits=serial.metadata.mask_bits)[0]
+    in_patch = serial.cells[cell.index]
+    assert _used(alone) == _used(in_patch)
+    scale = float(np.abs(in_patch.image).max())
+    np.testing.assert_allclose(alone.image, in_patch.image, rtol=0, atol=1e-4 * scale)
+    np.testing.assert_allclose(alone.noise, in_patch.noise, rtol=0, atol=1e-3)
+
+
+def test_the_shared_mapping_is_the_exact_mapping_within_tolerance(patch, exposures):
+    exposure = exposures[3]  # SIP, sheared
+    frame = exposure_frame(patch.tract.wcs, patch.outer_bbox, exposure, 1e-3)
+    assert frame.mapping is not None and not frame.serves_nothing
+    box = Box(x_start=20, x_stop=57, y_start=31, y_stop=70)
+    part = frame.mapping.restricted(box)
+    exact = map_box(patch.tract.wcs, box, exposure.wcs, tolerance=1e-9, grid_step=1)
+    assert np.hypot(part.x - exact.x, part.y - exact.y).max() < 1e-3
+    # a sub-box holds exactly the values of the box around it
+    inner = Box(x_start=23, x_stop=40, y_start=33, y_stop=41)
+    rows, cols = inner.slices_in(box)
+    assert np.array_equal(frame.mapping.restricted(inner).x, part.x[rows, cols])
+
+
+def test_the_projected_valid_box_holds_every_valid_pixel(patch, exposures):
+    for exposure in exposures:
+        region = projected_valid_box(patch.tract.wcs, exposure)
+        ny, nx = exposure.shape
+        yy, xx = np.mgrid[0:ny:7, 0:nx:7]
+        ra, dec = exposure.wcs.all_pix2world(xx.ravel(), yy.ravel(), 0)
+        tx, ty = patch.tract.wcs.all_world2pix(ra, dec, 0)
+        assert region.contains(tx, ty).all()
+
+
+def test_an_exposure_serving_none_of_the_area_is_left_out(patch, exposures):
+    far = make_exposure((210.0, 10.0), visit=9)
+    frame = exposure_frame(patch.tract.wcs, patch.outer_bbox, far, 1e-3)
+    assert frame.serves_nothing
+    block = CellBlock(patch.cells[:2], BUILD, 0, BITS, "r", record_distant=False)
+    block.add(far, frame)
+    assert all(not records for records in block.records)
