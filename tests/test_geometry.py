@@ -244,3 +244,28 @@ def test_skymap_json_round_trip(field_map, rings_default):
     assert again.spec == field_map.spec
     assert [t.center for t in again] == [t.center for t in field_map]
     assert len(SkyMap.from_json(rings_default.to_json())) == len(rings_default)
+
+
+@pytest.mark.parametrize("center", [(60.0, -30.0), (10.123456789, 45.987654321), (359.9, -89.0)])
+@pytest.mark.parametrize("cell_inner", [150, 151])
+def test_cell_wcs_is_canonical_without_a_round_trip(center, cell_inner):
+    """A cell's WCS is the tract's shifted by whole pixels, without the (slow) pickle round
+    trip; it must be what a worker process receives, bit for bit."""
+    import pickle
+
+    config = SkyMapConfig(
+        pixel_scale=0.2,
+        cell_inner=cell_inner,
+        cell_border=50,
+        cells_per_patch=3,
+        patches_per_tract=3,
+    )
+    tract = SkyMap.from_centers([center], config)[0]
+    points = np.array([[0.0, 0.0], [1.3, 7.7], [200.2, 150.1]])
+    for index in [(-1, -1), (0, 0), (4, 7), (8, 2)]:
+        wcs = tract.cell(*index).wcs
+        received = pickle.loads(pickle.dumps(wcs))
+        for name in ("crpix", "crval", "cdelt"):
+            assert np.array_equal(getattr(wcs.wcs, name), getattr(received.wcs, name)), name
+        assert np.array_equal(wcs.wcs.get_pc(), received.wcs.get_pc())
+        assert np.array_equal(wcs.all_pix2world(points, 0), received.all_pix2world(points, 0))

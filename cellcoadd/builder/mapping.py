@@ -515,13 +515,14 @@ def footprint_box(mapping: PixelPositions, half_width: int = KERNEL_HALF_WIDTH) 
     y = np.asarray(mapping.y, dtype=np.float64)
     if x.size == 0:
         raise MappingError("an empty mapping has no footprint")
-    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+    # floor is monotonic: the floor of the extremes is the extreme of the floors; a NaN
+    # propagates to the extremes, an infinity stays one
+    x_min, x_max, y_min, y_max = x.min(), x.max(), y.min(), y.max()
+    if not np.isfinite([x_min, x_max, y_min, y_max]).all():
         raise MappingError("some pixels do not map into the exposure")
-    floor_x = np.floor(x)
-    floor_y = np.floor(y)
     return Box(
-        x_start=int(floor_x.min()) - (half_width - 1),
-        x_stop=int(floor_x.max()) + half_width + 1,
-        y_start=int(floor_y.min()) - (half_width - 1),
-        y_stop=int(floor_y.max()) + half_width + 1,
+        x_start=math.floor(x_min) - (half_width - 1),
+        x_stop=math.floor(x_max) + half_width + 1,
+        y_start=math.floor(y_min) - (half_width - 1),
+        y_stop=math.floor(y_max) + half_width + 1,
     )

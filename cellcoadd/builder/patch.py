@@ -101,9 +101,12 @@ def blocks_of(cells: Sequence[Cell], n_tasks: int) -> list[list[Cell]]:
     enough cells, at most :data:`MAX_BLOCK_SIDE` cells on a side (cells in row-major order
     within a block, blocks in row-major order)."""
     side = max(1, min(MAX_BLOCK_SIDE, math.isqrt(max(1, len(cells) // max(1, n_tasks)))))
+    x0 = min((cell.index[0] for cell in cells), default=0)
+    y0 = min((cell.index[1] for cell in cells), default=0)
     groups: dict[tuple[int, int], list[Cell]] = {}
     for cell in sorted(cells, key=lambda c: (c.index[1], c.index[0])):
-        groups.setdefault((cell.index[1] // side, cell.index[0] // side), []).append(cell)
+        key = ((cell.index[1] - y0) // side, (cell.index[0] - x0) // side)
+        groups.setdefault(key, []).append(cell)
     return [groups[key] for key in sorted(groups)]
 
 

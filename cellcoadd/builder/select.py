@@ -176,17 +176,15 @@ def select_exposure(
             return Rejection(InputStatus.NO_OVERLAP)
     valid = exposure.valid_box
     assert valid is not None  # Exposure.__post_init__ fills it
-    x, y = mapping.x, mapping.y
-    inside = valid.contains(x, y)
-    overlap_fraction = float(np.mean(inside))
-    if overlap_fraction == 0.0:
-        return Rejection(InputStatus.NO_OVERLAP)
-    if not mapping.is_complete:
-        # part of the cell falls off the exposure's projection: it cannot cover the cell
+    footprint = footprint_box(mapping) if mapping.is_complete else None
+    if footprint is None or not valid.contains_box(footprint):
+        overlap_fraction = float(np.mean(valid.contains(mapping.x, mapping.y)))
+        if overlap_fraction == 0.0:
+            return Rejection(InputStatus.NO_OVERLAP)
+        # part of the cell (or the kernel's reach) falls off the valid box or the
+        # exposure's projection: it cannot cover the cell
         return Rejection(InputStatus.EDGE, overlap_fraction)
-    footprint = footprint_box(mapping)
-    if not valid.contains_box(footprint):
-        return Rejection(InputStatus.EDGE, overlap_fraction)
+    overlap_fraction = 1.0  # every pixel centre is inside the footprint, hence the box
     flux_scale = 10.0 ** (0.4 * (config.zero_point - exposure.zero_point))
     variance = flux_scale**2 * exposure.background_variance
     weight = 1.0 / variance if variance > 0.0 else float("nan")
@@ -199,15 +197,19 @@ def select_exposure(
     bad = (exposure.mask[footprint.slices] & bad_bits) != 0
     if bad.mean() > config.max_mask_fraction:
         return Rejection(InputStatus.MASKED_FRACTION, overlap_fraction)
-    pixels = exposure.image[footprint.slices][~bad]
-    if not np.all(np.isfinite(pixels)):
+    pixels = exposure.image[footprint.slices]
+    pixels = pixels[~bad] if bad.any() else pixels
+    # NaN and infinities propagate to the extremes
+    peak = max(float(pixels.max()), -float(pixels.min())) if pixels.size else 0.0
+    if not np.isfinite(peak):
         return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
     area = float(np.max(mapping.area_ratio))
-    if pixels.size and float(np.max(np.abs(pixels))) * flux_scale * area > _LARGEST_INPUT:
+    if peak * flux_scale * area > _LARGEST_INPUT:
         # finite, but its warped value would overflow the float32 coadd
         return Rejection(InputStatus.BAD_PIXELS, overlap_fraction)
     if isinstance(exposure.variance, np.ndarray):  # else a float
-        variance = exposure.variance[footprint.slices][~bad]
+        variance = exposure.variance[footprint.slices]
+        variance = variance[~bad] if bad.any() else variance
         if not (np.all(np.isfinite(variance)) and np.all(variance > 0)):
             return Rejection(InputStatus.BAD_WEIGHT, overlap_fraction)
         if variance.size and float(np.max(variance)) * (flux_scale * area) ** 2 > _LARGEST_INPUT:

@@ -83,8 +83,12 @@ class Cell:
 
     @cached_property
     def wcs(self) -> WCS:
-        """WCS of the outer-box array: its pixel (0, 0) is tract pixel ``outer_bbox`` start."""
-        return shifted_wcs(self.tract_wcs, self.outer_bbox.x_start, self.outer_bbox.y_start)
+        """WCS of the outer-box array: its pixel (0, 0) is tract pixel ``outer_bbox`` start.
+
+        In canonical form (see :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`) as the
+        tract's is: an integer shift of its (half-)integer reference pixel keeps it so."""
+        box = self.outer_bbox
+        return shifted_wcs(self.tract_wcs, box.x_start, box.y_start, canonical=False)
 
     def contains_inner(self, x: float | np.ndarray, y: float | np.ndarray) -> bool | np.ndarray:
         """Whether tract pixel position(s) lie in the inner (unique) region, half-open."""
