@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from cellcoadd.cli.shear import validate_shear as validate_shear_command
+from cellcoadd.errors import ConfigError
 from cellcoadd.pipelines import ValidationSettings, format_bias_table, validate_shear
 from cellcoadd.shear.anacal_adapter import padded_psf, require_anacal
 
@@ -61,11 +62,25 @@ def test_missing_anacal_names_the_extra(monkeypatch):
         require_anacal()
 
 
-def test_anacal_runs_in_coadd_mode_only():
-    with pytest.raises(ValueError, match="coadd mode only"):
-        ValidationSettings(method="anacal", mode="single")
-    result = CliRunner().invoke(validate_shear_command, ["--method", "anacal", "--mode", "single"])
-    assert result.exit_code == 2 and "coadd only" in result.output
+def test_anacal_on_a_single_epoch_and_not_multi_epoch():
+    # FPFS on the first epoch alone, its own noise realization (like metacal single);
+    # measured: m1 = -4e-5 +- 3.0e-4. c is looser than on coadds: AnaCal takes a scalar
+    # pixel scale, and each epoch's WCS is sheared by ~1% (c2 = +5e-4 +- 4.6e-3)
+    result = validate_shear(
+        "single", n_objects=16, snr=1.0e4, seed=21, method="anacal", progress=False
+    )
+    assert result["mode"] == "single" and result["incomplete_coadds"] == 0
+    assert result["n_used"] == 16
+    assert abs(result["m1"]) < 2e-3 and abs(result["m1"]) < 3.0 * result["m1_err"] + 1e-4
+    assert format_bias_table([result]).count("paper,") == 0
+    with pytest.raises(ConfigError, match="joint multi-epoch"):
+        validate_shear("multi-epoch", n_objects=2, method="anacal")
+    with pytest.raises(ValueError, match="joint multi-epoch"):
+        ValidationSettings(method="anacal", mode="multi-epoch")
+    result = CliRunner().invoke(
+        validate_shear_command, ["--method", "anacal", "--mode", "multi-epoch"]
+    )
+    assert result.exit_code == 2 and "coadd or single" in result.output
 
 
 def test_cli_json_with_anacal():

@@ -2,7 +2,8 @@
 
 * :mod:`cellcoadd.pipelines.demo`: what ``cellcoadd demo`` (``make demo``) runs;
 * :mod:`cellcoadd.pipelines.stamp_pairs`: the paper's paired stamp simulations, built
-  into cells and measured;
+  into cells and measured (or measured on the epochs themselves:
+  :mod:`cellcoadd.pipelines.epoch_measurements`);
 * :mod:`cellcoadd.pipelines.shear_validation`: the shear-bias validation over many pairs
   (``cellcoadd validate-shear``).
 
@@ -19,30 +20,38 @@ from cellcoadd._lazy import lazy_exports
 
 #: public name -> module that defines it
 _EXPORTS: dict[str, str] = {
-    "M_REQUIREMENT": "cellcoadd.pipelines.shear_validation",
-    "PAPER_TABLE1": "cellcoadd.pipelines.shear_validation",
+    "M_REQUIREMENT": "cellcoadd.pipelines.bias_table",
+    "PAPER_TABLE1": "cellcoadd.pipelines.bias_table",
+    "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.bias_table",
     "PairCatalogue": "cellcoadd.pipelines.shear_validation",
-    "format_bias_table": "cellcoadd.pipelines.shear_validation",
+    "format_bias_table": "cellcoadd.pipelines.bias_table",
     "measure_pairs": "cellcoadd.pipelines.shear_validation",
     "run_pairs": "cellcoadd.pipelines.shear_validation",
     "summarize": "cellcoadd.pipelines.shear_validation",
     "validate_shear": "cellcoadd.pipelines.shear_validation",
+    "EpochGeometry": "cellcoadd.pipelines.epoch_measurements",
     "PairMeasurement": "cellcoadd.pipelines.stamp_pairs",
     "ValidationSettings": "cellcoadd.pipelines.validation_settings",
     "largest_cell_inner": "cellcoadd.pipelines.validation_settings",
     "measure_pair": "cellcoadd.pipelines.stamp_pairs",
+    "measure_multi_epoch": "cellcoadd.pipelines.epoch_measurements",
+    "measure_single_epoch": "cellcoadd.pipelines.epoch_measurements",
 }
 
 __all__ = [
     "M_REQUIREMENT",
     "PAPER_TABLE1",
+    "PAPER_TABLE1_ROWS",
+    "EpochGeometry",
     "PairCatalogue",
     "PairMeasurement",
     "ValidationSettings",
     "format_bias_table",
     "largest_cell_inner",
+    "measure_multi_epoch",
     "measure_pair",
     "measure_pairs",
+    "measure_single_epoch",
     "run_pairs",
     "summarize",
     "validate_shear",
@@ -53,11 +62,19 @@ __getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
 
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
-    from cellcoadd.pipelines.shear_validation import (
+    from cellcoadd.pipelines.bias_table import (
         M_REQUIREMENT,
         PAPER_TABLE1,
-        PairCatalogue,
+        PAPER_TABLE1_ROWS,
         format_bias_table,
+    )
+    from cellcoadd.pipelines.epoch_measurements import (
+        EpochGeometry,
+        measure_multi_epoch,
+        measure_single_epoch,
+    )
+    from cellcoadd.pipelines.shear_validation import (
+        PairCatalogue,
         measure_pairs,
         run_pairs,
         summarize,

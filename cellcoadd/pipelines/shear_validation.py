@@ -2,9 +2,10 @@
 
 :func:`validate_shear` simulates ``n_objects`` objects, each as a matched pair sheared by
 ``+g`` and ``-g`` (same galaxy, PSFs, shifts, WCSs and noise), measures both members
-with metacalibration, on the cell coadd of their 10 epochs built by the real builder
-(``mode="coadd"``) or on the first epoch alone (``mode="single"``, the reference), and
-returns the multiplicative and additive biases
+with metacalibration (or BFD, AnaCal), on the cell coadd of their 10 epochs built by the
+real builder (``mode="coadd"``), on all epochs jointly in their own pixels
+(``mode="multi-epoch"``, the paper's reference) or on the first epoch alone
+(``mode="single"``), and returns the multiplicative and additive biases
 
 ``m1 = (g+_1 - g-_1) / (2 g_true) - 1``,  ``c_i = (g+_i + g-_i) / 2``,
 
@@ -32,35 +33,38 @@ from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
+from cellcoadd.pipelines.bias_table import (
+    M_REQUIREMENT,
+    PAPER_LABELS,
+    PAPER_TABLE1,
+    PAPER_TABLE1_ROWS,
+    format_bias_table,
+    paper_value,
+)
 from cellcoadd.pipelines.stamp_pairs import (
     PairMeasurement,
     bfd_noise_sigma,
     bfd_templates,
     measure_pair,
 )
-from cellcoadd.pipelines.validation_settings import Method, Mode, ValidationSettings, stamp_cell
+from cellcoadd.pipelines.validation_settings import (
+    Method,
+    Mode,
+    ValidationSettings,
+    check_method_mode,
+    stamp_cell,
+)
 from cellcoadd.shear import bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
 from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
-#: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1. The paper's
-#: reference for "single" is multi-epoch fitting; ours is the first epoch alone.
-PAPER_TABLE1: dict[str, tuple[float, float]] = {
-    "coadd": (0.0007, 0.0004),
-    "single": (0.0004, 0.0004),
-}
-PAPER_LABELS: dict[str, str] = {"coadd": "coadd", "single": "multi-epoch"}
-#: Every row of the paper's Table 1, keyed by (method, mode).
-PAPER_TABLE1_ROWS: dict[tuple[str, str], tuple[float, float]] = {
-    ("bfd", "coadd"): (0.0012, 0.0007),
-    ("bfd", "single"): (-0.0014, 0.0007),
-    ("metacal", "coadd"): PAPER_TABLE1["coadd"],
-    ("metacal", "single"): PAPER_TABLE1["single"],
-}
-#: Requirement on |m| of ambitious surveys quoted by the paper.
-M_REQUIREMENT = 1.0e-3
+
+def expected_inputs(settings: ValidationSettings) -> int:
+    """Epochs a measurement should use: all of them, or one in single mode."""
+    return 1 if settings.mode == "single" else settings.sim.n_epochs
+
 
 #: Keys of :func:`validate_shear`'s result that are always JSON-serialisable.
 RESULT_KEYS: tuple[str, ...] = (
@@ -229,7 +233,7 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     kept_minus = PAPER_CUTS(minus["noshear"])
     response = shear_response(plus, step=settings.step, selection=PAPER_CUTS)
     s2n = plus["noshear"]["s2n"][np.isfinite(plus["noshear"]["s2n"])]
-    expected_inputs = settings.sim.n_epochs if settings.mode == "coadd" else 1
+    paper = paper_value("metacal", settings.mode)
     return {
         **bias,
         "n_objects": len(catalogue),
@@ -245,9 +249,9 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
         "R_S11": float(response.R_S[0, 0]),
         "s2n_median": float(np.median(s2n)) if s2n.size else float("nan"),
         "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
-        "paper_m1": PAPER_TABLE1[settings.mode][0],
-        "paper_m1_err": PAPER_TABLE1[settings.mode][1],
+        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs(settings))),
+        "paper_m1": paper[0],
+        "paper_m1_err": paper[1],
     }
 
 
@@ -273,9 +277,11 @@ def _summarize_bfd(settings: ValidationSettings, catalogue: PairCatalogue) -> di
     cov_even = np.mean(np.concatenate([plus["cov_even"][good], minus["cov_even"][good]]), axis=0)
     cov_odd = np.mean(np.concatenate([plus["cov_odd"][good], minus["cov_odd"][good]]), axis=0)
     start = time.process_time()
-    templates = bfd_templates(settings, bfd_noise_sigma(settings))
+    templates = bfd_templates(settings, bfd_noise_sigma(settings), catalogue.index.tolist())
+    # templates that are the targets themselves already have the targets' orientations
+    rotations = 1 if settings.bfd_template_sample == "targets" else 8
     prior = bfd.TemplatePrior.from_templates(
-        templates, cov_even, cov_odd, snr_range=settings.bfd_snr_range
+        templates, cov_even, cov_odd, n_rotations=rotations, snr_range=settings.bfd_snr_range
     )
     pqrs = []
     for member in (plus, minus):
@@ -295,8 +301,7 @@ def _summarize_bfd(settings: ValidationSettings, catalogue: PairCatalogue) -> di
     )
     prior_cpu = time.process_time() - start
     sel_plus, sel_minus = pqrs[0].selected, pqrs[1].selected
-    expected_inputs = settings.sim.n_epochs if settings.mode == "coadd" else 1
-    paper = PAPER_TABLE1_ROWS[("bfd", settings.mode)]
+    paper = paper_value("bfd", settings.mode)
     return {
         **bias,
         "n_objects": len(catalogue),
@@ -311,7 +316,7 @@ def _summarize_bfd(settings: ValidationSettings, catalogue: PairCatalogue) -> di
         "n_templates": len(templates),
         "flux_snr_median": float(np.median(plus["snr"][good])),
         "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
+        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs(settings))),
         "paper_m1": paper[0],
         "paper_m1_err": paper[1],
     }
@@ -338,14 +343,20 @@ def validate_shear(
     wmom_fwhm: float = WMOM_FWHM,
     rotated_partners: bool = True,
     bfd_templates: int = 100,
+    bfd_template_sample: Literal["independent", "targets"] = "independent",
+    bfd_oversample: int = 1,
 ) -> dict[str, Any]:
     """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
     Parameters
     ----------
-    mode : {"coadd", "single"}
+    mode : {"coadd", "single", "multi-epoch"}
         ``"coadd"``: measure the cell coadd of each object's epochs, built with
-        :func:`cellcoadd.builder.build_cell`. ``"single"``: the first epoch alone.
+        :func:`cellcoadd.builder.build_cell`. ``"multi-epoch"``: all epochs jointly in
+        their own pixels (metacal: per-epoch metacal images with one common reconvolution
+        PSF and a joint shape; BFD: the sum of the epochs' moments; see
+        :mod:`cellcoadd.pipelines.epoch_measurements`). ``"single"``: the first epoch
+        alone (metacal, BFD, AnaCal).
     n_objects : int
         Number of objects (each simulated as a +g / -g pair).
     snr : float or (float, float), optional
@@ -377,8 +388,8 @@ def validate_shear(
     return_measurements : bool
         Also return the per-object :class:`PairCatalogue` under ``"measurements"``.
     method : {"metacal", "bfd", "anacal"}
-        Shear method (AnaCal: FPFS, coadd mode only; BFD: noise level fixed per run, see
-        :mod:`cellcoadd.pipelines.stamp_pairs`).
+        Shear method (AnaCal: FPFS, coadd or single mode; BFD: noise level fixed per run,
+        see :mod:`cellcoadd.pipelines.stamp_pairs`).
     shape : {"admom", "wmom"}
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
     wmom_fwhm : float
@@ -388,6 +399,12 @@ def validate_shear(
         intrinsic shape then cancels in ``c`` for an even ``n_objects``).
     bfd_templates : int
         Deep templates of the BFD prior.
+    bfd_template_sample : {"independent", "targets"}
+        BFD templates from an independent sample, or the targets themselves unsheared
+        (the high-S/N check; see :class:`~cellcoadd.pipelines.ValidationSettings`).
+    bfd_oversample : int
+        k-space oversampling of the BFD moments (1: the stamp's FFT grid; 4: accurate
+        shear derivatives for small galaxies, see ``docs/validation.md``).
 
     Returns
     -------
@@ -398,10 +415,17 @@ def validate_shear(
         ``wall_seconds``, ``mode``, ``settings`` (JSON-able), diagnostics (``R11``,
         ``R22``, ``R_S11``, ``s2n_median``, ``noise_sigma_median``,
         ``incomplete_coadds``: coadds missing an epoch) and the paper's value
-        (``paper_m1``, ``paper_m1_err``).
+        (``paper_m1``, ``paper_m1_err``; NaN where Table 1 has no row).
+
+    Raises
+    ------
+    ConfigError
+        A method and mode that do not run together (AnaCal in multi-epoch mode; the
+        ``"dilate"`` reconvolution PSF in multi-epoch metacal).
     """
     if n_objects < 2:
         raise ValueError(f"a bias needs at least 2 objects, got n_objects = {n_objects}")
+    check_method_mode(method, mode, reconvolution_psf)
     settings = ValidationSettings(
         mode=mode,
         seed=seed,
@@ -415,6 +439,8 @@ def validate_shear(
         wmom_fwhm=wmom_fwhm,
         rotated_partners=rotated_partners,
         bfd_templates=bfd_templates,
+        bfd_template_sample=bfd_template_sample,
+        bfd_oversample=bfd_oversample,
     )
     start = time.perf_counter()
     measured = run_pairs(
@@ -433,60 +459,18 @@ def validate_shear(
     return result
 
 
-def _label(result: dict[str, Any]) -> str:
-    method = result.get("method", "metacal")
-    name = {"metacal": "metacal", "bfd": "BFD"}.get(method, "AnaCal FPFS")
-    shape = result["settings"].get("shape", "admom")
-    if method == "metacal" and shape != "admom":
-        name += f" {shape}"
-    return f"{name} {result['mode']}"
-
-
-def format_bias_table(results: Sequence[dict[str, Any]]) -> str:
-    """A text table of :func:`validate_shear` results beside the paper's Table 1.
-
-    One line per result, followed by the paper's value for that method and mode.
-    """
-    header = f"{'sample':<38} {'m1':>20} {'c1':>20} {'c2':>20} {'N used/N':>13} {'CPU s':>9}"
-    lines = [
-        "Multiplicative bias on g1 (g_true = 0.02; metacal cuts S/N > 10, T/T_psf > 0.5; "
-        "BFD flux 5 < S/N < 50)",
-        header,
-        "-" * len(header),
-    ]
-    for result in results:
-        mode = result["mode"]
-        method = result.get("method", "metacal")
-        snr = result["settings"].get("snr")
-        snr_text = "sim noise" if snr is None else _snr_text(snr)
-        label = f"ours, {_label(result)} ({snr_text})"
-        lines.append(
-            f"{label:<38} {_pm(result['m1'], result['m1_err']):>20} "
-            f"{_pm(result['c1'], result['c1_err']):>20} "
-            f"{_pm(result['c2'], result['c2_err']):>20} "
-            f"{str(result['n_used']) + '/' + str(result['n_objects']):>13} "
-            f"{result['cpu_seconds']:>9.0f}"
-        )
-        if (method, mode) not in PAPER_TABLE1_ROWS:
-            continue  # AnaCal: not in the paper
-        paper_m, paper_err = PAPER_TABLE1_ROWS[(method, mode)]
-        paper_name = "metacal" if method == "metacal" else "BFD"
-        lines.append(
-            f"{'paper, ' + paper_name + ' ' + PAPER_LABELS[mode]:<38} {_pm(paper_m, paper_err):>20}"
-        )
-    lines.append(f"requirement: |m1| < {M_REQUIREMENT:g}")
-    if any(result["mode"] == "single" for result in results):
-        lines.append(
-            "note: the paper's multi-epoch rows fit all epochs jointly; "
-            "ours measure the first epoch alone"
-        )
-    return "\n".join(lines)
-
-
-def _pm(value: float, error: float) -> str:
-    return f"{value:+.4f} +- {error:.4f}"
-
-
-def _snr_text(snr: Sequence[float]) -> str:
-    low, high = snr
-    return f"S/N {low:g}" if low == high else f"S/N {low:g}-{high:g}"
+__all__ = [
+    "M_REQUIREMENT",
+    "PAPER_LABELS",
+    "PAPER_TABLE1",
+    "PAPER_TABLE1_ROWS",
+    "RESULT_KEYS",
+    "PairCatalogue",
+    "expected_inputs",
+    "format_bias_table",
+    "measure_pairs",
+    "paper_value",
+    "run_pairs",
+    "summarize",
+    "validate_shear",
+]

@@ -8,9 +8,9 @@ run with seed ``s``:
    same seed, so they hold the same galaxy, PSFs, shifts and WCSs;
 2. the pixel noise level ``sigma`` is the simulation's (``SimConfig.noise_sigma``), or,
    when a target S/N is asked for, ``sigma = sqrt(sum I^2) / snr`` with ``I`` the
-   noise-free pixels of the ``+g`` member that are measured (all epochs in coadd mode, the
-   first epoch in single mode): the optimal matched-filter S/N of the measured data. A
-   range ``(lo, hi)`` draws the target uniformly per object;
+   noise-free pixels of the ``+g`` member that are measured (all epochs in coadd and
+   multi-epoch modes, the first epoch in single mode): the optimal matched-filter S/N of
+   the measured data. A range ``(lo, hi)`` draws the target uniformly per object;
 3. the same noise fields (unit normals from a generator keyed by ``(s, i)``, scaled by
    ``sigma``) are added to both members;
 4. ``coadd`` mode builds cell ``(0, 0)`` of a one-cell sky map centred on the objects
@@ -19,7 +19,10 @@ run with seed ``s``:
    metacalibration on it through :func:`~cellcoadd.shear.observation.to_observation`;
    ``single`` mode runs metacalibration on the first epoch alone, with its PSF drawn at
    the object through the epoch's local WCS (pixel response included) and its own noise
-   realization (same ``sigma``, independent of the image noise).
+   realization (same ``sigma``, independent of the image noise); ``multi-epoch`` mode
+   measures all epochs jointly in their own pixels, each with its own PSF drawn that way
+   and its own noise realization (the first one is single mode's):
+   :mod:`cellcoadd.pipelines.epoch_measurements`.
 
 **Ring partners** (``rotated_partners``, default): objects ``2k`` and ``2k + 1`` are the
 same galaxy, PSFs, shifts and WCSs with the intrinsic ellipticity of ``2k + 1`` turned by
@@ -30,15 +33,17 @@ realizations (keyed by their own index).
 **Methods.** ``method="metacal"`` measures metacalibration shapes, adaptive moments
 (``shape="admom"``) or moments in a fixed Gaussian weight of FWHM ``wmom_fwhm``
 (``shape="wmom"``). ``method="bfd"`` measures the BFD moments of the coadd (or the first
-epoch) with their covariance from the cell's noise realization (white noise of the known
-level in single mode); the template prior and the shear are made from all the objects
+epoch, or the sum of the epochs' moments) with their covariance from the cell's noise
+realization (white noise of the known level in single and multi-epoch modes); the
+template prior and the shear are made from all the objects
 (:func:`bfd_templates`, :func:`cellcoadd.pipelines.shear_validation.summarize`). BFD needs
 one moment covariance for all targets, so its noise level is the same for every object:
 ``sigma = S_ref / snr``, ``S_ref`` the median ``sqrt(sum I^2)`` of the template sample,
 ``snr`` the geometric mean of the target range (the median object has that S/N).
 ``method="anacal"`` measures FPFS shapes and their analytic shear responses through AnaCal
 (:mod:`cellcoadd.shear.anacal_adapter`) with the same noise realization and measured
-variance as metacal (coadd mode only).
+variance as metacal (coadd mode), or on the first epoch with its own noise realization
+and the known variance (single mode).
 
 Everything about object ``i`` depends only on ``(s, i)`` and the settings, so any split
 of a run over processes gives identical results.
@@ -49,14 +54,24 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from cellcoadd.builder import build_cell
-from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.pipelines.epoch_measurements import (
+    BFD_DTYPE,
+    EpochGeometry,
+    bfd_epoch_sum,
+    bfd_measurement,
+    common_psf,
+    epoch_psf_image,
+    measure_multi_epoch,
+    measure_single_epoch,
+)
 from cellcoadd.pipelines.validation_settings import (
     METHODS,
     MODES,
@@ -69,22 +84,6 @@ from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
 from cellcoadd.shear.shapes import empty_record
 from cellcoadd.sim.stamps import StampObject, simulate_object
-
-#: One BFD measurement per row: ``flags`` (0: good; :data:`BFD_NOT_CENTRED`,
-#: :data:`BFD_FAILED`, :data:`NO_COADD`), the even moments ``F, R, E1, E2``, their
-#: covariance, the odd-moment covariance, the centre offset (arcsec) and the flux S/N.
-BFD_DTYPE = np.dtype(
-    [
-        ("flags", "i4"),
-        ("even", "f8", (4,)),
-        ("cov_even", "f8", (4, 4)),
-        ("cov_odd", "f8", (2, 2)),
-        ("centre", "f8", (2,)),
-        ("snr", "f8"),
-    ]
-)
-BFD_NOT_CENTRED = 1
-BFD_FAILED = 2
 
 #: ``flags`` bit of a measurement that could not be made because the coadd is empty.
 NO_COADD = 1 << 8
@@ -115,7 +114,7 @@ class PairMeasurement:
     snr : float
         Target optimal S/N (NaN when the simulation's noise level was kept).
     n_inputs : int
-        Epochs used in the coadd (1 in single mode).
+        Epochs used in the coadd (1 in single mode, all in multi-epoch mode).
     cpu_seconds : float
         CPU time spent on this object (simulation, coaddition, measurement).
     """
@@ -173,6 +172,15 @@ def _template_object(settings: ValidationSettings, index: int) -> StampObject:
     )
 
 
+def _unsheared_target(settings: ValidationSettings, index: int) -> StampObject:
+    """Target ``index`` of the run without shear (a template of ``"targets"`` priors)."""
+    base, turn = _partner(settings, index)
+    obj = simulate_object(
+        settings.sim, settings.seed, base, (0.0, 0.0), add_noise=False, rotate_shape=turn
+    )
+    return _as_object(obj, index)
+
+
 @functools.lru_cache(maxsize=8)
 def _reference_signal(settings_json: str) -> float:
     settings = ValidationSettings.model_validate_json(settings_json)
@@ -206,35 +214,6 @@ def _failed(settings: ValidationSettings, flags: int) -> dict[str, np.ndarray]:
     return {name: empty_record(flags) for name in METACAL_TYPES}
 
 
-def _bfd_record(moments: bfd.Moments | None) -> dict[str, np.ndarray]:
-    record = np.zeros(1, dtype=BFD_DTYPE)
-    if moments is None:
-        record["flags"] = BFD_FAILED
-        return {"bfd": record}
-    record["flags"] = 0 if moments.converged else BFD_NOT_CENTRED
-    record["even"] = moments.even
-    if moments.cov_even is not None and moments.cov_odd is not None:
-        record["cov_even"] = moments.cov_even
-        record["cov_odd"] = moments.cov_odd
-    record["centre"] = moments.centre
-    record["snr"] = moments.snr
-    return {"bfd": record}
-
-
-def _bfd_moments(
-    settings: ValidationSettings, image: np.ndarray, psf: np.ndarray, jacobian: np.ndarray,
-    centre: tuple[float, float], **noise: object,
-) -> dict[str, np.ndarray]:  # fmt: skip
-    try:
-        moments = bfd.bfd_moments(
-            image, psf, jacobian, weight=bfd.KSigmaWeight(sigma=settings.bfd_sigma),
-            centre=centre, **noise,  # type: ignore[arg-type]
-        )  # fmt: skip
-    except bfd.BfdError:
-        return _bfd_record(None)
-    return _bfd_record(moments)
-
-
 def _measure_coadd(
     settings: ValidationSettings, cell: Cell, exposures: list[Exposure]
 ) -> tuple[dict[str, np.ndarray], int]:
@@ -244,7 +223,7 @@ def _measure_coadd(
     obs = to_observation(coadd, noise_index=settings.noise_index)
     jac = obs["jacobian"]
     if settings.method == "bfd":
-        measured = _bfd_moments(
+        measured = bfd_measurement(
             settings, obs["image"], obs["psf"]["image"], observation_jacobian(obs),
             (jac["col0"], jac["row0"]), noise_images=[obs["noise"]],
         )  # fmt: skip
@@ -271,43 +250,6 @@ def _measure_coadd(
     return result, coadd.n_used
 
 
-def epoch_psf_image(exposure: Exposure, x: float, y: float, size: int) -> np.ndarray:
-    """The PSF of ``exposure`` at pixel ``(x, y)`` on an odd ``size`` x ``size`` stamp.
-
-    Drawn through the exposure's local jacobian at ``(x, y)``, with the pixel response,
-    centred on the stamp's central pixel: the form metacal takes.
-    """
-    centre = float(size // 2)
-    return exposure.draw_psf(x, y, Box.from_shape((size, size)), center=(centre, centre))
-
-
-def _measure_single(
-    settings: ValidationSettings, obj: StampObject, exposure: Exposure, sigma: float
-) -> dict[str, np.ndarray]:
-    x, y = obj.epochs[0].position
-    if settings.method == "bfd":
-        centre = (int(round(x)), int(round(y)))
-        return _bfd_moments(
-            settings, exposure.image, epoch_psf_image(exposure, *centre, settings.build.psf_size),
-            exposure.local_jacobian(*centre), centre, noise_variance=sigma**2,
-        )  # fmt: skip
-    noise = sigma * _generator(settings, obj.index, _SINGLE_NOISE_STREAM).standard_normal(
-        exposure.shape
-    )
-    return measure_metacal(
-        exposure.image,
-        epoch_psf_image(exposure, x, y, settings.build.psf_size),
-        noise,
-        exposure.local_jacobian(x, y),
-        noise_sigma=sigma,
-        step=settings.step,
-        psf=settings.reconvolution_psf,
-        guess_centroid=(x, y),
-        shape=settings.shape,
-        weight_fwhm=settings.wmom_fwhm,
-    )
-
-
 def _as_object(obj: StampObject, index: int) -> StampObject:
     """``obj`` as object ``index`` (its exposures' detector, which keys the builder's noise
     realizations)."""
@@ -317,22 +259,35 @@ def _as_object(obj: StampObject, index: int) -> StampObject:
     return dataclasses.replace(obj, index=int(index), exposures=exposures)
 
 
-def bfd_templates(settings: ValidationSettings, sigma: float) -> list[bfd.KData]:
+def bfd_templates(
+    settings: ValidationSettings, sigma: float, indices: Sequence[int] | None = None
+) -> list[bfd.KData]:
     """Fourier data of the BFD prior's deep templates.
 
     ``settings.bfd_templates`` objects of an independent sample (:func:`template_seed`),
     simulated with the run's settings but unsheared, with pixel noise ``sigma / 100``,
-    coadded into the stamp cell by the builder (``coadd`` mode) or taken from their first
-    epoch (``single`` mode), exactly as the targets; templates that cannot be measured
-    are skipped.
+    coadded into the stamp cell by the builder (``coadd`` mode), taken from their first
+    epoch (``single`` mode) or with their epochs' Fourier data summed (``multi-epoch``
+    mode), exactly as the targets; templates that cannot be measured are skipped.
+
+    With ``settings.bfd_template_sample == "targets"`` the templates are instead the
+    targets ``indices`` themselves, unsheared (same galaxies, PSFs, shifts and WCSs, their
+    own template noise): the prior is then exactly the targets' population, the limit in
+    which BFD can be checked at high S/N (see ``docs/validation.md``).
     """
     cell = stamp_cell(settings) if settings.mode == "coadd" else None
     weight = bfd.KSigmaWeight(sigma=settings.bfd_sigma)
     size = settings.sim.stamp_size
     seed = template_seed(settings)
+    if settings.bfd_template_sample == "targets":
+        if indices is None:
+            raise ValueError("templates from the targets need the targets' indices")
+        objects = [_unsheared_target(settings, int(i)) for i in indices]
+    else:
+        objects = [_template_object(settings, j) for j in range(settings.bfd_templates)]
     out = []
-    for j in range(settings.bfd_templates):
-        obj = _template_object(settings, j)
+    for obj in objects:
+        j = obj.index
         rng = np.random.default_rng(np.random.SeedSequence([seed, j, _EPOCH_NOISE_STREAM]))
         noise = rng.standard_normal((len(obj.exposures), size, size))
         exposures = _with_noise(obj, noise, sigma / 100.0)
@@ -346,7 +301,11 @@ def bfd_templates(settings: ValidationSettings, sigma: float) -> list[bfd.KData]
                 data = bfd.fourier_data(
                     obs["image"], obs["psf"]["image"], observation_jacobian(obs),
                     weight=weight, centre=(jac["col0"], jac["row0"]),
+                    oversample=settings.bfd_oversample,
                 )  # fmt: skip
+            elif settings.mode == "multi-epoch":
+                geometry = EpochGeometry.of(obj, settings.build.psf_size)
+                data = bfd_epoch_sum(settings, exposures, geometry, None)
             else:
                 x, y = obj.epochs[0].position
                 centre = (int(round(x)), int(round(y)))
@@ -354,7 +313,7 @@ def bfd_templates(settings: ValidationSettings, sigma: float) -> list[bfd.KData]
                 psf = epoch_psf_image(exposure, *centre, settings.build.psf_size)
                 data = bfd.fourier_data(
                     exposure.image, psf, exposure.local_jacobian(*centre), weight=weight,
-                    centre=centre,
+                    centre=centre, oversample=settings.bfd_oversample,
                 )  # fmt: skip
         except bfd.BfdError:
             continue
@@ -393,6 +352,16 @@ def measure_pair(
     noise = _generator(settings, index, _EPOCH_NOISE_STREAM).standard_normal(
         (len(plus.exposures), size, size)
     )
+    if settings.mode != "coadd":
+        # metacal's (and AnaCal's) own noise realizations, independent of the image
+        # noise; the first epoch's is the same in single and multi-epoch modes
+        n_planes = 1 if settings.mode == "single" else len(plus.exposures)
+        own_noise = _generator(settings, index, _SINGLE_NOISE_STREAM).standard_normal(
+            (n_planes, size, size)
+        )
+    if settings.mode == "multi-epoch":  # the same epochs' geometry and PSFs in both members
+        geometry = EpochGeometry.of(plus, settings.build.psf_size)
+        reconv = common_psf(settings, geometry) if settings.method == "metacal" else None
     results = []
     n_inputs = 1
     for obj in (plus, minus):
@@ -400,8 +369,13 @@ def measure_pair(
         if settings.mode == "coadd":
             assert cell is not None  # made above
             measured, n_inputs = _measure_coadd(settings, cell, exposures)
+        elif settings.mode == "multi-epoch":
+            measured = measure_multi_epoch(settings, exposures, geometry, sigma, own_noise, reconv)
+            n_inputs = len(exposures)
         else:
-            measured = _measure_single(settings, obj, exposures[0], sigma)
+            measured = measure_single_epoch(
+                settings, obj, exposures[0], sigma, sigma * own_noise[0]
+            )
         results.append(measured)
     return PairMeasurement(
         index=int(index),

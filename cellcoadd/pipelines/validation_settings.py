@@ -9,6 +9,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
+from cellcoadd.errors import ConfigError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
@@ -16,10 +17,44 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
-Mode = Literal["coadd", "single"]
-MODES: tuple[str, ...] = ("coadd", "single")
+Mode = Literal["coadd", "single", "multi-epoch"]
+MODES: tuple[str, ...] = ("coadd", "single", "multi-epoch")
 Method = Literal["metacal", "bfd", "anacal"]
 METHODS: tuple[str, ...] = ("metacal", "bfd", "anacal")
+#: Modes each method runs in.
+METHOD_MODES: dict[str, tuple[str, ...]] = {
+    "metacal": MODES,
+    "bfd": MODES,
+    "anacal": ("coadd", "single"),
+}
+
+
+def check_method_mode(method: str, mode: str, reconvolution_psf: str = "gauss") -> None:
+    """Refuse a method, mode and reconvolution PSF that cannot run together.
+
+    Raises
+    ------
+    ConfigError
+        An unknown method or mode, AnaCal in multi-epoch mode (AnaCal measures one image;
+        it has no joint multi-epoch estimator), or multi-epoch metacalibration with the
+        ``"dilate"`` reconvolution PSF (each epoch's dilated PSF differs: there is no
+        common one).
+    """
+    if method not in METHOD_MODES:
+        raise ConfigError(f"unknown method {method!r}; known: {METHODS}")
+    if mode not in MODES:
+        raise ConfigError(f"unknown mode {mode!r}; known: {MODES}")
+    if mode not in METHOD_MODES[method]:
+        raise ConfigError(
+            f"method {method!r} runs in mode {' or '.join(METHOD_MODES[method])}, not "
+            f"{mode!r}: AnaCal measures one image (a coadd or a single epoch) and has no "
+            "joint multi-epoch estimator"
+        )
+    if method == "metacal" and mode == "multi-epoch" and reconvolution_psf == "dilate":
+        raise ConfigError(
+            "multi-epoch metacalibration reconvolves every epoch with one round PSF: "
+            "reconvolution_psf must be 'gauss' or 'fitgauss', not 'dilate'"
+        )
 
 
 class ValidationSettings(BaseModel):
@@ -27,8 +62,10 @@ class ValidationSettings(BaseModel):
 
     Parameters
     ----------
-    mode : {"coadd", "single"}
-        Measure the cell coadd of all epochs, or the first epoch alone.
+    mode : {"coadd", "single", "multi-epoch"}
+        Measure the cell coadd of all epochs, the first epoch alone, or all epochs jointly
+        in their own pixels (metacal and BFD; see
+        :mod:`cellcoadd.pipelines.epoch_measurements`).
     seed : int
         Seed of the run; object ``i`` depends only on ``(seed, i)``.
     snr : (float, float), optional
@@ -52,7 +89,8 @@ class ValidationSettings(BaseModel):
     noise_index : int
         Which coadd noise realization feeds the metacal noise correction.
     method : {"metacal", "bfd", "anacal"}
-        Shear method (``anacal``: FPFS through AnaCal, the optional ``cellcoadd[anacal]``).
+        Shear method (``anacal``: FPFS through AnaCal, the optional ``cellcoadd[anacal]``,
+        in coadd or single mode).
     shape : {"admom", "wmom"}
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
     wmom_fwhm : float
@@ -63,6 +101,15 @@ class ValidationSettings(BaseModel):
         Scale (arcsec) of the BFD k-sigma weight (N = 4; the paper: 1).
     bfd_templates : int
         Deep templates of the BFD prior (same simulation, noise / 100, shear 0).
+    bfd_oversample : int
+        k-space oversampling of the BFD moments (zero-padding factor of the images; see
+        :func:`cellcoadd.shear.bfd.fourier_data`): 1 is the FFT grid of the stamp or cell,
+        whose shear derivatives are inaccurate for small galaxies; 4 makes them exact to
+        ~1e-4 (the high-S/N check), at ~16 times the prior's cost.
+    bfd_template_sample : {"independent", "targets"}
+        The BFD templates: ``bfd_templates`` objects of an independent sample, or the
+        targets themselves unsheared (a prior that is exactly the targets' population:
+        the high-S/N check of docs/validation.md).
     anacal_sigma : float
         Scale (arcsec) of AnaCal's FPFS shapelet kernel.
     """
@@ -86,6 +133,8 @@ class ValidationSettings(BaseModel):
     rotated_partners: bool = True
     bfd_sigma: float = Field(1.0, gt=0.0, description="arcsec")
     bfd_templates: int = Field(100, ge=1)
+    bfd_oversample: int = Field(1, ge=1, le=8)
+    bfd_template_sample: Literal["independent", "targets"] = "independent"
     anacal_sigma: float = Field(0.8, gt=0.0, lt=3.0, description="arcsec")
 
     @model_validator(mode="before")
@@ -128,8 +177,13 @@ class ValidationSettings(BaseModel):
                 f"the bias is measured on g1: sim.shear must be (g, 0) with g != 0, "
                 f"got {self.sim.shear}"
             )
-        if self.method == "anacal" and self.mode != "coadd":
-            raise ValueError("method 'anacal' runs in coadd mode only")
+        check_method_mode(self.method, self.mode, self.reconvolution_psf)
+        if self.bfd_template_sample == "targets" and self.rotated_partners:
+            raise ConfigError(
+                "BFD templates from the targets need rotated_partners=False: a ring partner "
+                "is its twin turned by 90 degrees, a second template the prior would confuse "
+                "with the target's own"
+            )
         if self.build.psf_size > self.cell_inner + 2 * self.cell_border:
             raise ValueError("build.psf_size exceeds the cell outer box")
         return self

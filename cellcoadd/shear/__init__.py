@@ -1,5 +1,6 @@
-"""Shear measurement on cell coadds: metacalibration on plain arrays and its calibration,
-and observations of cells for shear codes (the shear-bias validation of the paper is in
+"""Shear measurement on cell coadds: metacalibration on plain arrays (one image, or several
+epochs of an object measured jointly) and its calibration, and observations of cells for
+shear codes (the shear-bias validation of the paper is in
 :mod:`cellcoadd.pipelines`).
 
 See ``docs/shear.md`` for the conventions (PSF includes the pixel; jacobian in
@@ -18,6 +19,13 @@ from cellcoadd.shear.metacal import (
     metacal_images,
     metacal_shears,
     reconvolution_psf,
+)
+from cellcoadd.shear.multi_epoch import (
+    MetacalEpoch,
+    common_reconvolution_psf,
+    measure_joint_shapes,
+    measure_metacal_multi_epoch,
+    multi_epoch_images,
 )
 from cellcoadd.shear.noise_correlation import (
     gaussian_weight,
@@ -56,15 +64,20 @@ __all__ = [
     "EmptyCellError",
     "MetacalError",
     "MetacalFlags",
+    "MetacalEpoch",
     "MetacalImage",
     "SelectionCuts",
     "ShearResponse",
+    "common_reconvolution_psf",
     "gaussian_weight",
     "mean_shear",
+    "measure_joint_shapes",
     "measure_metacal",
+    "measure_metacal_multi_epoch",
     "measure_shapes",
     "metacal_images",
     "metacal_shears",
+    "multi_epoch_images",
     "multiplicative_bias",
     "noise_correlation",
     "noise_covariance",

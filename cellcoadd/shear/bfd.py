@@ -10,7 +10,7 @@ Taylor coefficients ``P, Q, R`` of the likelihood in the shear into the posterio
 On a cell coadd the moment covariance comes from the noise realizations, which are coadded
 exactly like the image: their power spectrum (:func:`noise_power`) is the coadd's
 correlated-noise power. Multi-epoch BFD combines the per-epoch moments linearly
-(:func:`combine_epochs`).
+(:func:`combine_epochs`, a weighted mean, or :func:`sum_epochs`, their sum).
 
 Typical use::
 
@@ -28,6 +28,7 @@ Conventions (PSF includes the pixel; jacobian in arcsec/pixel, GalSim ``u`` West
 
 from __future__ import annotations
 
+from cellcoadd.shear.bfd_epochs import combine_epochs, sum_epochs
 from cellcoadd.shear.bfd_moments import (
     EVEN_NAMES,
     ODD_NAMES,
@@ -37,7 +38,6 @@ from cellcoadd.shear.bfd_moments import (
     Moments,
     bfd_moments,
     centroid_jacobian,
-    combine_epochs,
     fourier_data,
     measure_moments,
     moment_coefficients,
@@ -63,4 +63,5 @@ __all__ = [
     "moment_coefficients",
     "noise_power",
     "paired_bias",
+    "sum_epochs",
 ]

@@ -49,7 +49,6 @@ __all__ = [
     "KSigmaWeight",
     "Moments",
     "bfd_moments",
-    "combine_epochs",
     "fourier_data",
     "measure_moments",
     "moment_coefficients",
@@ -240,9 +239,14 @@ def _psf_transform(psf: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def noise_power(
-    noise_images: np.ndarray | Sequence[np.ndarray], shape: tuple[int, int]
+    noise_images: np.ndarray | Sequence[np.ndarray],
+    shape: tuple[int, int],
+    fft_shape: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """Noise power ``E|FFT(noise)|^2`` on the FFT grid of an image of ``shape``.
+
+    ``fft_shape`` (at least ``shape``): each tile is zero-padded to it before the FFT,
+    giving the power of a zero-padded image (:func:`fourier_data` with ``oversample``).
 
     Every realization (at least ``shape``) is cut into non-overlapping tiles of ``shape``
     whose ``|FFT|^2`` are averaged: larger realizations (a whole cell) give a more
@@ -266,7 +270,7 @@ def noise_power(
     stack = np.array(tiles)
     if not np.all(np.isfinite(stack)):
         raise BfdError("noise realizations contain non-finite pixels")
-    return np.asarray(np.mean(np.abs(np.fft.fft2(stack)) ** 2, axis=0))
+    return np.asarray(np.mean(np.abs(np.fft.fft2(stack, s=fft_shape)) ** 2, axis=0))
 
 
 def fourier_data(
@@ -278,6 +282,7 @@ def fourier_data(
     weight: KSigmaWeight | None = None,
     centre: tuple[float, float] | None = None,
     min_psf_transform: float = 1.0e-3,
+    oversample: int = 1,
 ) -> KData:
     """Deconvolved Fourier samples of ``image`` inside the weight's support.
 
@@ -300,6 +305,21 @@ def fourier_data(
         Pixel position of the origin (default ``(nx // 2, ny // 2)``).
     min_psf_transform : float
         Refuse a PSF whose transform falls below this inside the weight's support.
+    oversample : int
+        Sample the transform ``oversample`` times more finely in each direction, by
+        zero-padding the image (the object must be inside it, as it is anyway).
+
+    Notes
+    -----
+    The moments are Riemann sums over the FFT grid, of spacing ``2 pi / (n * scale)``;
+    so are the analytic shear derivatives of a template's moments
+    (:func:`moment_coefficients`), which equal the derivatives of the sheared object's
+    sums only in the continuum limit. On a small stamp (48 pixels of 0.27 arcsec: 5.8
+    grid steps out to ``kmax`` of the paper's weight) the two differ by up to tens of per
+    cent in ``d M_E / d g`` for galaxies of ~0.1 arcsec half-light radius; ``oversample=4``
+    brings them to ~1e-4. Zero-padded samples are correlated: the per-sample noise is
+    scaled by ``oversample**2``, which gives the moment covariance for weights that are
+    smooth on the scale of the coarse grid (the k-sigma weight is).
     """
     weight = KSigmaWeight() if weight is None else weight
     img = np.asarray(image, dtype=np.float64)
@@ -313,8 +333,11 @@ def fourier_data(
         raise BfdError(f"psf must be an odd square stamp, got shape {psf_arr.shape}")
     if not np.isfinite(psf_arr.sum()) or psf_arr.sum() <= 0.0:
         raise BfdError("psf must be finite with a positive sum")
-    ny, nx = img.shape
-    cx, cy = (nx // 2, ny // 2) if centre is None else centre
+    if int(oversample) != oversample or oversample < 1:
+        raise BfdError(f"oversample must be an integer >= 1, got {oversample}")
+    ny0, nx0 = img.shape
+    cx, cy = (nx0 // 2, ny0 // 2) if centre is None else centre
+    ny, nx = ny0 * int(oversample), nx0 * int(oversample)
     k = _sky_wavenumbers((ny, nx), jac)
     ksq = k[0] ** 2 + k[1] ** 2
     support = ksq < weight.kmax**2
@@ -340,50 +363,17 @@ def fourier_data(
     kpx = 2.0 * np.pi * np.fft.fftfreq(nx)
     kpy = 2.0 * np.pi * np.fft.fftfreq(ny)
     phase = np.exp(1j * (kpx[None, :] * cx + kpy[:, None] * cy))[support]
-    values = np.fft.fft2(img)[support] * phase * d2k / psf_t
+    values = np.fft.fft2(img, s=(ny, nx))[support] * phase * d2k / psf_t
     noise: np.ndarray | None = None
+    correlation = float(oversample) ** 2  # zero-padded samples are correlated
     if noise_images is not None:
-        noise = noise_power(noise_images, (ny, nx))[support] * (d2k / np.abs(psf_t)) ** 2
+        power = noise_power(noise_images, (ny0, nx0), (ny, nx))[support]
+        noise = correlation * power * (d2k / np.abs(psf_t)) ** 2
     elif noise_variance is not None:
         if not (np.isfinite(noise_variance) and noise_variance > 0.0):
             raise BfdError(f"noise_variance must be positive, got {noise_variance}")
-        noise = noise_variance * nx * ny * (d2k / np.abs(psf_t)) ** 2
+        noise = correlation * noise_variance * nx0 * ny0 * (d2k / np.abs(psf_t)) ** 2
     return KData(kx=kx, ky=ky, values=values, noise=noise, weight=weight)
-
-
-def combine_epochs(epochs: Sequence[KData], weights: Sequence[float] | None = None) -> KData:
-    """Multi-epoch Fourier data: moments are the weighted mean of the epochs' moments.
-
-    BFD moments are linear in the pixels, so the moments of several unaliased exposures
-    of one object (each with its own PSF and jacobian, all with the same sky origin) are
-    combined by a weighted sum; here the weights are normalised to sum to 1 so that the
-    result is on the scale of a single image (and of noise-free templates). The default
-    weights are the inverse flux-moment variances; they never depend on the signal.
-    """
-    if not epochs:
-        raise BfdError("combine_epochs needs at least one epoch")
-    if any(e.weight != epochs[0].weight for e in epochs):
-        raise BfdError("all epochs must use the same weight function")
-    if weights is None:
-        if any(e.noise is None for e in epochs):
-            raise BfdError("default epoch weights need the noise of every epoch")
-        wts = np.array([1.0 / np.sum(e.weight.derivatives(e.kx**2 + e.ky**2)[0] ** 2 * e.noise)
-                        for e in epochs])  # fmt: skip
-    else:
-        wts = np.asarray(weights, dtype=np.float64)
-    if wts.shape != (len(epochs),) or np.any(wts < 0.0) or wts.sum() <= 0.0:
-        raise BfdError(f"need one non-negative weight per epoch, got {wts}")
-    wts = wts / wts.sum()
-    has_noise = all(e.noise is not None for e in epochs)
-    return KData(
-        kx=np.concatenate([e.kx for e in epochs]),
-        ky=np.concatenate([e.ky for e in epochs]),
-        values=np.concatenate([w * e.values for w, e in zip(wts, epochs, strict=True)]),
-        noise=np.concatenate([w * w * e.noise for w, e in zip(wts, epochs, strict=True)])
-        if has_noise
-        else None,
-        weight=epochs[0].weight,
-    )
 
 
 def _moments_at(data: KData, offset: np.ndarray, coeff: np.ndarray | None = None) -> np.ndarray:
@@ -453,6 +443,7 @@ def bfd_moments(
     weight: KSigmaWeight | None = None,
     centre: tuple[float, float] | None = None,
     recentre: bool = True,
+    oversample: int = 1,
 ) -> Moments:
     """BFD moments (with covariance) of the object near ``centre`` of ``image``.
 
@@ -463,6 +454,6 @@ def bfd_moments(
     """
     data = fourier_data(
         image, psf, jacobian, noise_images=noise_images, noise_variance=noise_variance,
-        weight=weight, centre=centre,
+        weight=weight, centre=centre, oversample=oversample,
     )  # fmt: skip
     return measure_moments(data, recentre=recentre)

@@ -68,6 +68,8 @@ __all__ = [
     "MetacalError",
     "MetacalImage",
     "ReconvolutionKind",
+    "check_arguments",
+    "input_flags",
     "measure_metacal",
     "measure_shapes",
     "metacal_images",
@@ -254,6 +256,7 @@ def metacal_images(
     step: float = 0.01,
     psf: ReconvolutionKind = "gauss",
     types: Sequence[str] = METACAL_TYPES,
+    reconv: galsim.GSObject | None = None,
 ) -> dict[str, MetacalImage]:
     """Make the metacal images of ``image``.
 
@@ -275,6 +278,11 @@ def metacal_images(
         Reconvolution PSF; see :func:`reconvolution_psf`.
     types : sequence of str
         Subset of :data:`METACAL_TYPES` to make.
+    reconv : galsim.GSObject, optional
+        The reconvolution PSF (unit flux, arcsec) to use instead of the one ``psf`` picks
+        for this image: multi-epoch metacalibration reconvolves every epoch with one
+        common PSF (:func:`cellcoadd.shear.multi_epoch.common_reconvolution_psf`). It must
+        be at least as large as this image's own choice.
 
     Returns
     -------
@@ -285,14 +293,15 @@ def metacal_images(
     MetacalError
         Malformed inputs: shapes, non-finite pixels, unusable PSF or jacobian.
     """
-    image, noise_image = _check_arguments(image, psf_image, noise_image, jacobian, step, psf, types)
+    image, noise_image = check_arguments(image, psf_image, noise_image, jacobian, step, psf, types)
     if not np.all(np.isfinite(image)) or (
         noise_image is not None and not np.all(np.isfinite(noise_image))
     ):
         raise MetacalError("image or noise_image has non-finite pixels")
     wcs = _galsim_wcs(jacobian)
     psf_normalised = _check_psf_image(psf_image)
-    reconv = reconvolution_psf(psf_normalised, jacobian, step=step, kind=psf)
+    if reconv is None:
+        reconv = reconvolution_psf(psf_normalised, jacobian, step=step, kind=psf)
     deconvolution = galsim.Deconvolve(_interpolated(psf_normalised, wcs))
     reconv_image = _draw_psf(reconv, wcs, psf_normalised.shape[0])
     shears = metacal_shears(step)
@@ -420,18 +429,11 @@ def measure_metacal(
         For each of :data:`METACAL_TYPES`, a length-1 structured array of
         :data:`SHAPE_DTYPE`.
     """
-    image, noise_image = _check_arguments(image, psf_image, noise_image, jacobian, step, psf)
+    image, noise_image = check_arguments(image, psf_image, noise_image, jacobian, step, psf)
     if shape not in SHAPE_KINDS:
         raise MetacalError(f"unknown shape {shape!r}; known: {SHAPE_KINDS}")
-    psf_sum = float(np.sum(psf_image))
-    flag = 0
-    if not np.all(np.isfinite(image)) or (
-        noise_image is not None and not np.all(np.isfinite(noise_image))
-    ):
-        flag = MetacalFlags.NONFINITE
-    elif not np.isfinite(psf_sum) or psf_sum <= 0.0:
-        flag = MetacalFlags.PSF_FAILED
-    else:
+    flag = input_flags(image, psf_image, noise_image)
+    if not flag:
         try:
             images = metacal_images(image, psf_image, noise_image, jacobian, step=step, psf=psf)
         except MetacalError:  # arguments were checked: the PSF moments failed
@@ -443,7 +445,21 @@ def measure_metacal(
     return measure_shapes(images, noise_sigma, guess_centroid, guess_sigma, shape, weight_fwhm)
 
 
-def _check_arguments(
+def input_flags(image: np.ndarray, psf_image: np.ndarray, noise_image: np.ndarray | None) -> int:
+    """:class:`MetacalFlags` of unusable pixel values: ``NONFINITE`` for non-finite pixels
+    in the image or the noise image, ``PSF_FAILED`` for a PSF stamp without a finite
+    positive sum; 0 when metacalibration can run."""
+    if not np.all(np.isfinite(image)) or (
+        noise_image is not None and not np.all(np.isfinite(noise_image))
+    ):
+        return int(MetacalFlags.NONFINITE)
+    psf_sum = float(np.sum(psf_image))
+    if not np.isfinite(psf_sum) or psf_sum <= 0.0:
+        return int(MetacalFlags.PSF_FAILED)
+    return 0
+
+
+def check_arguments(
     image: np.ndarray,
     psf_image: np.ndarray,
     noise_image: np.ndarray | None,
@@ -452,7 +468,9 @@ def _check_arguments(
     kind: str,
     types: Sequence[str] = METACAL_TYPES,
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Raise MetacalError on malformed arguments; return the arrays as float64."""
+    """Raise :class:`MetacalError` on malformed arguments of :func:`metacal_images` (shapes,
+    a singular jacobian, the step, an unknown reconvolution PSF kind or type); return
+    ``image`` and ``noise_image`` as float64."""
     image = np.asarray(image, dtype=np.float64)
     if image.ndim != 2 or image.size == 0:
         raise MetacalError(f"image must be a non-empty 2-D array, got shape {image.shape}")

@@ -155,16 +155,74 @@ def psf_T(psf_image: np.ndarray, wcs: galsim.BaseWCS, weight_fwhm: float | None 
     return _sky_T(moments.moments_sigma, moments.observed_shape)
 
 
-def _sky_offsets(
+def sky_offsets(
     shape: tuple[int, int], wcs: galsim.BaseWCS, centre: tuple[float, float]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sky offsets ``(u, v)`` (arcsec) of the pixel centres from pixel ``centre``, through the
-    local jacobian of ``wcs`` at ``centre``."""
+    """Sky offsets ``(u, v)`` (arcsec) of the pixel centres of an array of ``shape`` from
+    pixel ``centre``, through the local jacobian of ``wcs`` at ``centre``."""
     ny, nx = shape
     jac = wcs.jacobian(image_pos=galsim.PositionD(*centre))
     dx = np.arange(nx)[np.newaxis, :] - centre[0]
     dy = np.arange(ny)[:, np.newaxis] - centre[1]
     return jac.dudx * dx + jac.dudy * dy, jac.dvdx * dx + jac.dvdy * dy
+
+
+def fwhm_to_sigma(fwhm: float) -> float:
+    """Sigma of a Gaussian of full width at half maximum ``fwhm`` (same unit)."""
+    return float(fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0))))
+
+
+def gaussian_moment_sums(
+    array: np.ndarray, u: np.ndarray, v: np.ndarray, inverse_cov: np.ndarray
+) -> np.ndarray:
+    """Sums of ``array`` in the Gaussian weight ``W = exp(-d^T inverse_cov d / 2)``.
+
+    Parameters
+    ----------
+    array : ndarray, shape (ny, nx)
+        Pixel values (image units).
+    u, v : ndarray, shape (ny, nx)
+        Sky offsets ``d = (u, v)`` (arcsec) of the pixel centres from the weight's centre
+        (see :func:`sky_offsets`).
+    inverse_cov : ndarray, shape (2, 2)
+        Inverse covariance of the weight, arcsec^-2.
+
+    Returns
+    -------
+    ndarray, shape (7,)
+        ``sum W I``, ``sum W I u``, ``sum W I v``, ``sum W I u^2``, ``sum W I v^2``,
+        ``sum W I u v`` (image units times arcsec^0, ^1 or ^2) and ``sum W^2``: the pieces
+        that single-image and joint multi-epoch moments are made of.
+    """
+    a, b, c = inverse_cov[0, 0], inverse_cov[0, 1], inverse_cov[1, 1]
+    weight = np.exp(-0.5 * (a * u * u + 2.0 * b * u * v + c * v * v))
+    wi = weight * array
+    wiu, wiv = wi * u, wi * v
+    return np.array(
+        [
+            np.sum(wi),
+            np.sum(wiu),
+            np.sum(wiv),
+            np.sum(wiu * u),
+            np.sum(wiv * v),
+            np.sum(wiu * v),
+            np.sum(weight * weight),
+        ]
+    )
+
+
+def round_inverse_cov(weight_fwhm: float) -> np.ndarray:
+    """Inverse covariance (arcsec^-2) of the round ``wmom`` weight of FWHM ``weight_fwhm``."""
+    return np.eye(2) / fwhm_to_sigma(weight_fwhm) ** 2
+
+
+def wmom_from_sums(sums: np.ndarray) -> tuple[float, float, float, float]:
+    """``(F, M_uu, M_vv, M_uv)`` from :func:`gaussian_moment_sums` (``M`` normalised by
+    ``F``, arcsec^2; NaN or infinite when ``F = 0``)."""
+    flux = float(sums[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        muu, mvv, muv = (float(x) for x in np.asarray(sums[3:6]) / flux)
+    return flux, muu, mvv, muv
 
 
 def weighted_moments(
@@ -179,16 +237,40 @@ def weighted_moments(
     ny, nx = array.shape
     if centre is None:
         centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
-    u, v = _sky_offsets(array.shape, wcs, centre)
-    sigma = weight_fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-    weight = np.exp(-0.5 * (u * u + v * v) / sigma**2)
-    wi = weight * array
-    flux = float(np.sum(wi))
+    u, v = sky_offsets(array.shape, wcs, centre)
+    sums = gaussian_moment_sums(array, u, v, round_inverse_cov(weight_fwhm))
+    return (*wmom_from_sums(sums), float(sums[6]))
+
+
+def wmom_record(sums: np.ndarray, flux_variance: float, centre: tuple[float, float]) -> np.ndarray:
+    """The ``wmom`` shape record from (possibly joint) weighted sums.
+
+    Parameters
+    ----------
+    sums : ndarray, shape (7,)
+        :func:`gaussian_moment_sums` of one image, or a weighted mean of several epochs'.
+    flux_variance : float
+        Noise variance of ``sums[0]`` (image units squared); 0 gives an infinite S/N.
+    centre : (x, y)
+        Pixel position of the weight's centre, reported as ``x, y``.
+    """
+    flux, muu, mvv, muv = wmom_from_sums(sums)
+    T = muu + mvv
+    if flux_variance > 0.0:
+        s2n = flux / np.sqrt(flux_variance)
+    else:
+        s2n = np.inf if flux > 0.0 else np.nan
+    record = np.zeros(1, dtype=SHAPE_DTYPE)
     with np.errstate(invalid="ignore", divide="ignore"):
-        muu = float(np.sum(wi * u * u)) / flux
-        mvv = float(np.sum(wi * v * v)) / flux
-        muv = float(np.sum(wi * u * v)) / flux
-    return flux, muu, mvv, muv, float(np.sum(weight**2))
+        record["g1"] = (muu - mvv) / T
+        record["g2"] = 2.0 * muv / T
+    record["T"] = T
+    record["flux"] = flux
+    record["s2n"] = s2n
+    record["x"], record["y"] = centre
+    if not (flux > 0.0 and T > 0.0 and s2n > 0.0):
+        record["flags"] = MetacalFlags.NONPOSITIVE_FLUX
+    return record
 
 
 def measure_wmom(
@@ -209,20 +291,6 @@ def measure_wmom(
     ny, nx = array.shape
     if centre is None:
         centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
-    flux, muu, mvv, muv, sum_w2 = weighted_moments(array, wcs, centre, weight_fwhm)
-    T = muu + mvv
-    if noise_variance > 0.0:
-        s2n = flux / np.sqrt(noise_variance * sum_w2)
-    else:
-        s2n = np.inf if flux > 0.0 else np.nan
-    record = np.zeros(1, dtype=SHAPE_DTYPE)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        record["g1"] = (muu - mvv) / T
-        record["g2"] = 2.0 * muv / T
-    record["T"] = T
-    record["flux"] = flux
-    record["s2n"] = s2n
-    record["x"], record["y"] = centre
-    if not (flux > 0.0 and T > 0.0 and s2n > 0.0):
-        record["flags"] = MetacalFlags.NONPOSITIVE_FLUX
-    return record
+    u, v = sky_offsets(array.shape, wcs, centre)
+    sums = gaussian_moment_sums(array, u, v, round_inverse_cov(weight_fwhm))
+    return wmom_record(sums, noise_variance * float(sums[6]), centre)
