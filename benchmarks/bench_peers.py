@@ -1,13 +1,15 @@
-"""cellcoadd against other resampling codes on the same patch: CPU seconds per patch and per area.
+"""cellcoadd against other resampling codes on the same patch and cell: CPU s per area.
 
 The job: one patch of 6 x 6 cells (4 x 4 inner cells plus the border ring; cells of 150 px
 inner + 2 x 50 px border at 0.2 arcsec/px) observed by ``--exposures`` noise-and-stars
-exposures of ``--size`` px at 0.26 arcsec/px, rotated and dithered, each covering the patch.
+exposures of ``--size`` px at 0.26 arcsec/px, rotated and dithered, each covering the patch;
+then one inner cell of that patch alone (its 250 x 250 outer box, every code on that grid).
 The codes, each on one core:
 
-* ``cellcoadd`` ``build_patch`` (serial), K = 0 and K = 3 noise realizations, PSF stamps
-  included: every cell's outer box (36 x 250 x 250 px, overlapping borders included), input
-  selection, Lanczos-3 warp of image + noise + mask fraction, inverse-variance weighted mean;
+* ``cellcoadd`` ``build_patch`` (serial) or ``build_cell``, K = 0 and K = 3 noise
+  realizations, PSF stamps included: every cell's outer box (36 x 250 x 250 px, overlapping
+  borders included; each exposure is warped once over the patch), input selection,
+  Lanczos-3 warp of image + noise + variance, inverse-variance weighted mean;
 * SWarp (when installed: ``apt-get install swarp``; skipped with a message otherwise): the
   exposures as FITS files with weight maps, one call with a configuration written here
   (``NTHREADS 1``, ``RESAMPLING_TYPE LANCZOS3``, ``COMBINE_TYPE WEIGHTED``, no background
@@ -52,6 +54,7 @@ from astropy.wcs import WCS  # noqa: E402
 from common import exposure_wcs, format_table, machine_summary  # noqa: E402
 from scipy import ndimage  # noqa: E402
 
+from cellcoadd.builder.cell import build_cell  # noqa: E402
 from cellcoadd.builder.patch import build_patch  # noqa: E402
 from cellcoadd.geometry import SkyMap, SkyMapConfig  # noqa: E402
 from cellcoadd.model.build_config import BuildConfig  # noqa: E402
@@ -236,6 +239,54 @@ def reproject_coadd(exposures: list[Exposure], wcs: WCS, shape: tuple[int, int])
     return total / weights
 
 
+def compare(codes: dict[str, Callable[[], object]], rounds: int, area: float, unit: str) -> None:
+    """Time ``codes`` in ``rounds`` interleaved rounds and print CPU s per ``unit``, per
+    arcmin^2 (``area``) and against SWarp, with the load average after each round."""
+    times: dict[str, list[float]] = {name: [] for name in codes}
+    load = []
+    for _ in range(rounds):
+        for name, run in codes.items():
+            child, start = child_cpu(), time.process_time()
+            run()
+            times[name].append(time.process_time() - start + child_cpu() - child)
+        load.append(os.getloadavg()[0])
+    medians = {name: float(np.median(values)) for name, values in times.items()}
+    reference = medians.get("SWarp LANCZOS3 weighted")
+    rows = [
+        (
+            name,
+            seconds,
+            1e3 * seconds / area,
+            f"{seconds / reference:.2f}" if reference else "-",
+        )
+        for name, seconds in medians.items()
+    ]
+    header = ["code", f"CPU s / {unit}", "CPU ms / arcmin^2", "/ SWarp"]
+    print(format_table(header, rows, ["s", ".3f", ".1f", "s"]))
+    print(f"\nload average (1 min) after each round: {', '.join(f'{v:.2f}' for v in load)}\n")
+
+
+def peer_codes(
+    exposures: list[Exposure], wcs: WCS, shape: tuple[int, int], work: Path
+) -> dict[str, Callable[[], object]]:
+    """The other codes resampling ``exposures`` onto the grid (``wcs``, ``shape``)."""
+    codes: dict[str, Callable[[], object]] = {
+        "scipy + astropy (order 3)": lambda: scipy_coadd(exposures, wcs, shape),
+        "GalSim InterpolatedImage L3": lambda: galsim_coadd(exposures, wcs, shape),
+    }
+    try:
+        import reproject  # noqa: F401
+
+        codes["reproject_interp (bicubic)"] = lambda: reproject_coadd(exposures, wcs, shape)
+    except ImportError:
+        pass
+    work.mkdir(exist_ok=True)
+    swarp = swarp_runner(exposures, wcs, shape, work)
+    if swarp is not None:
+        codes["SWarp LANCZOS3 weighted"] = swarp
+    return codes
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
@@ -257,58 +308,53 @@ def main() -> None:
     exposures = make_exposures((float(ra), float(dec)), args.exposures, args.size)
     area = shape[0] * shape[1] * (PIXEL_SCALE / 60.0) ** 2  # arcmin^2
     n_cells = len(list(patch.cells))
+    cell = patch.cells[len(patch.cells) // 2 + 2]  # an inner cell
+    cell_shape = cell.outer_bbox.shape
+    cell_area = cell_shape[0] * cell_shape[1] * (PIXEL_SCALE / 60.0) ** 2
     print(
         f"peers: a patch of {n_cells} cells (grid {shape[1]} x {shape[0]} px, {area:.1f} arcmin^2) "
         f"from {args.exposures} exposures of {args.size} x {args.size} px; {machine_summary()}"
     )
     print(f"CPU vector extensions: {cpu_features()}")
-    print(f"medians of {args.rounds} interleaved rounds, one core each\n")
+    print(f"medians of {args.rounds} interleaved rounds, one core each")
+    try:
+        import reproject  # noqa: F401
+    except ImportError:
+        print("reproject is not installed: skipped")
+    if shutil.which("swarp") is None and shutil.which("SWarp") is None:
+        print("SWarp is not installed (apt-get install swarp): skipped")
 
-    def cellcoadd(k: int) -> Callable[[], object]:
+    def cellcoadd_patch(k: int) -> Callable[[], object]:
         build = BuildConfig(n_noise=k)
         return lambda: build_patch(patch, exposures, build, seed=1, progress=False)
 
-    codes: dict[str, Callable[[], object]] = {
-        "cellcoadd K=0 (+PSF)": cellcoadd(0),
-        "cellcoadd K=3 (+PSF)": cellcoadd(3),
-        "scipy + astropy (order 3)": lambda: scipy_coadd(exposures, wcs, shape),
-        "GalSim InterpolatedImage L3": lambda: galsim_coadd(exposures, wcs, shape),
-    }
-    try:
-        import reproject  # noqa: F401
+    def cellcoadd_cell(k: int) -> Callable[[], object]:
+        build = BuildConfig(n_noise=k)
+        return lambda: build_cell(cell, exposures, build, seed=1)
 
-        codes["reproject_interp (bicubic)"] = lambda: reproject_coadd(exposures, wcs, shape)
-    except ImportError:
-        print("reproject is not installed: skipped")
     with tempfile.TemporaryDirectory() as directory:
-        swarp = swarp_runner(exposures, wcs, shape, Path(directory))
-        if swarp is None:
-            print("SWarp is not installed (apt-get install swarp): skipped")
-        else:
-            codes["SWarp LANCZOS3 weighted"] = swarp
+        codes = {
+            "cellcoadd K=0 (+PSF)": cellcoadd_patch(0),
+            "cellcoadd K=3 (+PSF)": cellcoadd_patch(3),
+            **peer_codes(exposures, wcs, shape, Path(directory) / "patch"),
+        }
         codes["cellcoadd K=0 (+PSF)"]()  # warm-up: numba kernels, imports
-        times: dict[str, list[float]] = {name: [] for name in codes}
-        load = []
-        for _ in range(args.rounds):
-            for name, run in codes.items():
-                child, start = child_cpu(), time.process_time()
-                run()
-                times[name].append(time.process_time() - start + child_cpu() - child)
-            load.append(os.getloadavg()[0])
-    medians = {name: float(np.median(values)) for name, values in times.items()}
-    reference = medians.get("SWarp LANCZOS3 weighted")
-    rows = [
-        (
-            name,
-            seconds,
-            1e3 * seconds / area,
-            f"{seconds / reference:.2f}" if reference else "-",
+        print(
+            f"\nthe patch: cellcoadd builds its {n_cells} cells (outer boxes, overlapping), "
+            f"the others one {shape[1]} x {shape[0]} grid\n"
         )
-        for name, seconds in medians.items()
-    ]
-    header = ["code", "CPU s / patch", "CPU ms / arcmin^2", "/ SWarp"]
-    print(format_table(header, rows, ["s", ".2f", ".1f", "s"]))
-    print(f"\nload average (1 min) after each round: {', '.join(f'{v:.2f}' for v in load)}")
+        compare(codes, args.rounds, area, "patch")
+        cell_wcs = cell.wcs
+        codes = {
+            "cellcoadd K=0 (+PSF)": cellcoadd_cell(0),
+            "cellcoadd K=3 (+PSF)": cellcoadd_cell(3),
+            **peer_codes(exposures, cell_wcs, cell_shape, Path(directory) / "cell"),
+        }
+        print(
+            f"one cell {cell.index}: its {cell_shape[1]} x {cell_shape[0]} outer box "
+            f"({cell_area:.2f} arcmin^2) for every code\n"
+        )
+        compare(codes, args.rounds, cell_area, "cell")
 
 
 if __name__ == "__main__":
