@@ -150,3 +150,38 @@ def test_an_exposure_serving_none_of_the_area_is_left_out(patch, exposures):
     block = CellBlock(patch.cells[:2], BUILD, 0, BITS, "r", record_distant=False)
     block.add(far, frame)
     assert all(not records for records in block.records)
+
+
+def test_block_sums_equal_each_cell_summing_alone():
+    """Followers share one array until an input misses them; every cell ends with exactly
+    the sums of adding its own inputs in order."""
+    from cellcoadd.builder.cell_sums import BlockSums
+
+    rng = np.random.default_rng(3)
+    boxes = [
+        Box.from_shape((9, 11), x_start=7 * i, y_start=5 * j) for j in range(3) for i in range(3)
+    ]
+    block = BlockSums(boxes, n_noise=1, psf_size=3)
+    naive = [np.zeros((4, *b.shape)) for b in boxes]
+    naive_mask = [np.zeros(b.shape, dtype=np.int32) for b in boxes]
+    for _ in range(12):
+        contributions = []
+        chosen = [i for i in range(len(boxes)) if rng.random() < 0.7]
+        split = int(rng.integers(0, len(chosen) + 1))
+        groups = [chosen[:split], *[[i] for i in chosen[split:]]]  # one shared, some alone
+        for cells in filter(None, groups):
+            box = Box.enclosing(boxes[i] for i in cells).grow(int(rng.integers(0, 2)))
+            n_planes = int(rng.choice([3, 4]))  # with or without the masked fraction
+            planes = rng.normal(size=(n_planes, *box.shape)) * 10.0 ** rng.uniform(-8, 8)
+            mask = rng.integers(0, 4, box.shape).astype(np.int32)
+            contributions.append((box, planes, mask, cells))
+            for i in cells:
+                rows, cols = boxes[i].slices_in(box)
+                naive[i][:n_planes] += planes[:, rows, cols]
+                naive_mask[i] |= mask[rows, cols]
+        block.add(contributions)
+    assert any(own is None for own in block.own) and any(own is not None for own in block.own)
+    for i in range(len(boxes)):
+        sums = block.cell(i)
+        assert np.array_equal(sums.planes, naive[i]), i
+        assert np.array_equal(sums.mask, naive_mask[i]), i

@@ -21,7 +21,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from cellcoadd.builder.cell_sums import (
-    CellSums,
+    BlockSums,
+    Contribution,
     cell_jacobian,
     coadd_psf_contribution,
     finish_cell,
@@ -87,16 +88,6 @@ Input = Exposure | ExposureSource | DescribedSource
 #: Pixels loaded around a cell's footprint from an exposure source: the interpolation
 #: of bad pixels reads this far, plus the kernel's reach and a margin for the rough box.
 SOURCE_MARGIN = DEFAULT_MAX_RADIUS + 8
-
-
-def bounding_box(boxes: Sequence[Box]) -> Box:
-    """The smallest box holding every box of ``boxes`` (at least one)."""
-    return Box(
-        x_start=min(b.x_start for b in boxes),
-        x_stop=max(b.x_stop for b in boxes),
-        y_start=min(b.y_start for b in boxes),
-        y_stop=max(b.y_stop for b in boxes),
-    )
 
 
 def warped_contribution(
@@ -182,10 +173,10 @@ class CellBlock:
                 )
         self.config, self.seed, self.mask_bits, self.band = config, seed, mask_bits, band
         self.record_distant = record_distant
-        self.area = area or bounding_box([cell.outer_bbox for cell in self.cells])
-        self.sums = [
-            CellSums(cell.outer_bbox.shape, config.n_noise, config.psf_size) for cell in cells
-        ]
+        self.area = area or Box.enclosing([cell.outer_bbox for cell in self.cells])
+        self.sums = BlockSums(
+            [cell.outer_bbox for cell in self.cells], config.n_noise, config.psf_size
+        )
         self.records: list[list[InputRecord]] = [[] for _ in cells]
         self.jacobians = [cell_jacobian(cell) for cell in cells]
         self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
@@ -228,21 +219,23 @@ class CellBlock:
         if shared:
             assert frame.mapping is not None  # frame.covers says so
             mapping = frame.mapping.restricted(
-                bounding_box([self.cells[i].outer_bbox for i in shared])
+                Box.enclosing([self.cells[i].outer_bbox for i in shared])
             )
             loads.append(footprint_box(mapping).grow(SOURCE_MARGIN))
-        exposure = item if isinstance(item, Exposure) else item.load(bounding_box(loads))
+        exposure = item if isinstance(item, Exposure) else item.load(Box.enclosing(loads))
         bad_bits = exposure.mask_bits.mask_of(
             name for name in self.config.bad_mask_bits if name in exposure.mask_bits.bits
         )
+        contributions: list[Contribution] = []
         if mapping is not None:
-            self._add_shared(exposure, item, shared, mapping, bad_bits)
+            self._add_shared(exposure, item, shared, mapping, bad_bits, contributions)
         for i in alone:
             self.current = self.cells[i]
             found = select_exposure(
                 self.cells[i], exposure, self.config, bad_bits, grid_cache=self.grid_caches[i]
             )
-            self._use(i, exposure, found, bad_bits)
+            self._use(i, exposure, found, bad_bits, contributions)
+        self.sums.add(contributions)
 
     def _add_shared(
         self,
@@ -251,9 +244,11 @@ class CellBlock:
         shared: list[int],
         mapping: PixelMapping,
         bad_bits: int,
+        contributions: list[Contribution],
     ) -> None:
         """Select ``exposure`` for the ``shared`` cells from one mapping (over their
-        bounding box, header pixels), and warp it once for all that accept it."""
+        bounding box, header pixels), and warp it once for all that accept it (appended
+        to ``contributions``)."""
         # positions in the loaded pixels: a source's cutout starts at its origin
         dx, dy = (0, 0) if isinstance(item, Exposure) else exposure.origin
         x, y = mapping.x - dx, mapping.y - dy  # exact: integer shifts
@@ -282,7 +277,7 @@ class CellBlock:
         if not accepted:
             return
         self.current = self.cells[accepted[0][0]]
-        box = bounding_box([self.cells[i].outer_bbox for i, _, _ in accepted])
+        box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in accepted])
         rows, cols = box.slices_in(mapping.box)
         union = PixelMapping(
             box,
@@ -293,13 +288,13 @@ class CellBlock:
             mapping.grid_step,
         )
         warped = self._warp(accepted[0][1], union, exposure, bad_bits)
+        if warped is None:  # the box of all holds something none of them needs
+            for i, found, psf_stamp in accepted:
+                self._use(i, exposure, found, bad_bits, contributions, psf_stamp)
+            return
         for i, found, psf_stamp in accepted:
-            if warped is None:  # the box of all holds something none of them needs
-                self._use(i, exposure, found, bad_bits, psf_stamp)
-                continue
-            planes, mask = warped
-            rows, cols = self.cells[i].outer_bbox.slices_in(box)
-            self._accept(i, exposure, found, planes[:, rows, cols], mask[rows, cols], psf_stamp)
+            self._accept(i, exposure, found, psf_stamp)
+        contributions.append((box, *warped, [i for i, _, _ in accepted]))
 
     def _warp(
         self, found: Candidate, mapping: PixelMapping, exposure: Exposure, bad_bits: int
@@ -330,9 +325,11 @@ class CellBlock:
         exposure: Exposure,
         found: Candidate | Rejection,
         bad_bits: int,
+        contributions: list[Contribution],
         psf_stamp: np.ndarray | None = None,
     ) -> None:
-        """Warp ``exposure`` for cell ``i`` alone, if selection accepted it."""
+        """Warp ``exposure`` for cell ``i`` alone, if selection accepted it (appended to
+        ``contributions``)."""
         if isinstance(found, Rejection):
             self._reject(i, exposure, found)
             return
@@ -349,18 +346,13 @@ class CellBlock:
                 return
         mask = translated_mask(exposure, found.footprint, self.mask_bits)
         planes, warped_mask = warped_contribution(found, pixels, mask, self.config.n_noise)
-        self._accept(i, exposure, found, planes, warped_mask, psf_stamp)
+        self._accept(i, exposure, found, psf_stamp)
+        contributions.append((self.cells[i].outer_bbox, planes, warped_mask, [i]))
 
-    def _accept(
-        self,
-        i: int,
-        exposure: Exposure,
-        found: Candidate,
-        planes: np.ndarray,
-        mask: np.ndarray,
-        psf_stamp: np.ndarray,
-    ) -> None:
-        self.sums[i].add(planes, mask, psf_stamp, found.weight)
+    def _accept(self, i: int, exposure: Exposure, found: Candidate, psf_stamp: np.ndarray) -> None:
+        """Record ``exposure`` as used by cell ``i``, with its PSF (its pixels are added by
+        :meth:`BlockSums.add`)."""
+        self.sums.add_psf(i, psf_stamp, found.weight)
         moments = psf_moments(psf_stamp, self.jacobians[i])
         self.records[i].append(
             input_record(
@@ -380,8 +372,9 @@ class CellBlock:
     def finish(self) -> list[CellCoadd]:
         """The coadds of the cells, in the order given."""
         results = []
-        for cell, sums, records in zip(self.cells, self.sums, self.records, strict=True):
+        for i, (cell, records) in enumerate(zip(self.cells, self.records, strict=True)):
             self.current = cell
+            sums = self.sums.cell(i)
             results.append(finish_cell(cell, sums, records, self.config, self.mask_bits))
         return results
 
@@ -487,7 +480,6 @@ def build_cell(
 __all__ = [
     "SOURCE_MARGIN",
     "CellBlock",
-    "bounding_box",
     "build_cell",
     "build_cells",
     "check_mask_bits",

@@ -10,12 +10,15 @@ centre and warped through the same mapping as the image.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from cellcoadd.builder.kernels.warp import warp_planes
 from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import draw_exposure_psf
 from cellcoadd.builder.select import Candidate
+from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -26,32 +29,113 @@ from cellcoadd.model.sources import ExposureHeader
 
 
 class CellSums:
-    """Running weighted sums of one cell's planes (float64 for exact accumulation).
+    """One cell's weighted sums (float64), as :func:`finish_cell` reads them.
 
-    One array holds them all, in the order of
+    ``planes`` holds them all, in the order of
     :func:`~cellcoadd.builder.kernels.input_planes.input_planes` (image, K noise
-    realizations, variance, masked fraction), so one addition adds an exposure.
+    realizations, variance, masked fraction).
     """
 
-    def __init__(self, shape: tuple[int, int], n_noise: int, psf_size: int) -> None:
-        self.planes = np.zeros((n_noise + 3, *shape))
-        self.image = self.planes[0]
-        self.noise = self.planes[1 : 1 + n_noise]
-        self.variance = self.planes[1 + n_noise]
-        self.mfrac = self.planes[2 + n_noise]
-        self.psf = np.zeros((psf_size, psf_size))
-        self.mask = np.zeros(shape, dtype=np.int32)
-        self.weight = 0.0
-
-    def add(
-        self, planes: np.ndarray, mask: np.ndarray, psf_stamp: np.ndarray, weight: float
+    def __init__(
+        self, planes: np.ndarray, mask: np.ndarray, psf: np.ndarray, weight: float
     ) -> None:
-        """Add one exposure: its weighted warped ``planes`` (the first ``len(planes)``
-        planes of the sums), its warped ``mask`` (ORed) and its PSF stamp with ``weight``."""
-        self.planes[: len(planes)] += planes
-        self.mask |= mask
-        self.psf += weight * psf_stamp
-        self.weight += weight
+        n_noise = len(planes) - 3
+        self.planes, self.mask, self.psf, self.weight = planes, mask, psf, weight
+        self.image = planes[0]
+        self.noise = planes[1 : 1 + n_noise]
+        self.variance = planes[1 + n_noise]
+        self.mfrac = planes[2 + n_noise]
+
+
+#: One input's warped planes (P, ny, nx) and mask over a box, for some cells of a block
+#: (indices; their outer boxes lie inside the box).
+Contribution = tuple[Box, np.ndarray, np.ndarray, list[int]]
+
+
+class BlockSums:
+    """The running sums of a block of cells, in float64 for exact accumulation.
+
+    Cells that have received the same inputs so far ("followers") share one array over
+    the block's box: an input warped once over the block is added once, not once per
+    cell. A cell gets its own copy the first time an input reaches the followers but not
+    it (or reaches it alone). Both hold, bit for bit, what adding each input's warped
+    planes to the cell's own zeroed sums would: the same additions in the same order.
+
+    Parameters
+    ----------
+    boxes : sequence of Box
+        The cells' outer boxes (tract pixels).
+    n_noise : int
+        Number of noise realizations (the sums hold ``n_noise + 3`` planes).
+    psf_size : int
+        Side of the PSF stamps, pixels.
+    """
+
+    def __init__(self, boxes: Sequence[Box], n_noise: int, psf_size: int) -> None:
+        self.boxes = list(boxes)
+        self.box = Box.enclosing(self.boxes)
+        self.n_planes = n_noise + 3
+        self.shared = np.zeros((0, 0, 0))  # allocated by the first addition
+        self.shared_mask = np.zeros((0, 0), dtype=np.int32)
+        self.own: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.boxes)
+        self.psf = [np.zeros((psf_size, psf_size)) for _ in self.boxes]
+        self.weight = [0.0] * len(self.boxes)
+
+    def add_psf(self, i: int, stamp: np.ndarray, weight: float) -> None:
+        """Add one input's PSF stamp and weight to cell ``i``."""
+        self.psf[i] += weight * stamp
+        self.weight[i] += weight
+
+    def add(self, contributions: Sequence[Contribution]) -> None:
+        """Add what one input gives the cells: every contribution of that input at once."""
+        groups = [[i for i in cells if self.own[i] is None] for _, _, _, cells in contributions]
+        best = max(range(len(groups)), key=lambda k: len(groups[k]), default=None)
+        joining = set(groups[best]) if best is not None else set()
+        if joining:  # the shared sums change: followers left out take their own copy first
+            for i, own in enumerate(self.own):
+                if own is None and i not in joining:
+                    self._diverge(i)
+        for k, (box, planes, mask, cells) in enumerate(contributions):
+            for i in cells:
+                if i in joining:
+                    continue
+                if self.own[i] is None:
+                    self._diverge(i)
+                own_planes, own_mask = self.own[i]  # type: ignore[misc]
+                rows, cols = self.boxes[i].slices_in(box)
+                own_planes[: len(planes)] += planes[:, rows, cols]
+                own_mask |= mask[rows, cols]
+            if k == best and joining:
+                self._add_shared(box, planes, mask, Box.enclosing(self.boxes[i] for i in joining))
+
+    def _add_shared(self, box: Box, planes: np.ndarray, mask: np.ndarray, region: Box) -> None:
+        if not self.shared.size:
+            self.shared = np.zeros((self.n_planes, *self.box.shape))
+            self.shared_mask = np.zeros(self.box.shape, dtype=np.int32)
+        rows, cols = region.slices_in(self.box)
+        source_rows, source_cols = region.slices_in(box)
+        self.shared[: len(planes), rows, cols] += planes[:, source_rows, source_cols]
+        self.shared_mask[rows, cols] |= mask[source_rows, source_cols]
+
+    def _diverge(self, i: int) -> None:
+        """Give cell ``i`` its own copy of the sums it has shared so far."""
+        if not self.shared.size:
+            shape = self.boxes[i].shape
+            self.own[i] = (np.zeros((self.n_planes, *shape)), np.zeros(shape, dtype=np.int32))
+            return
+        rows, cols = self.boxes[i].slices_in(self.box)
+        self.own[i] = (self.shared[:, rows, cols].copy(), self.shared_mask[rows, cols].copy())
+
+    def cell(self, i: int) -> CellSums:
+        """Cell ``i``'s sums (its planes a view of the shared ones while it follows)."""
+        own = self.own[i]
+        if own is None and not self.shared.size:  # nothing was added to any follower
+            self._diverge(i)
+            own = self.own[i]
+        if own is None:
+            rows, cols = self.boxes[i].slices_in(self.box)
+            own = (self.shared[:, rows, cols], self.shared_mask[rows, cols].copy())
+        return CellSums(own[0], own[1], self.psf[i], self.weight[i])
 
 
 def coadd_psf_contribution(cell: Cell, candidate: Candidate, psf_size: int) -> np.ndarray:
@@ -165,7 +249,9 @@ def _check_finite(
 
 
 __all__ = [
+    "BlockSums",
     "CellSums",
+    "Contribution",
     "cell_jacobian",
     "coadd_psf_contribution",
     "finish_cell",

@@ -11,6 +11,8 @@ Conventions (used everywhere in cellcoadd):
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
@@ -111,6 +113,19 @@ class Box(BaseModel):
             and other.x_stop <= self.x_stop
             and self.y_start <= other.y_start
             and other.y_stop <= self.y_stop
+        )
+
+    @classmethod
+    def enclosing(cls, boxes: Iterable[Box]) -> Box:
+        """The smallest box holding every one of ``boxes`` (at least one)."""
+        boxes = list(boxes)
+        if not boxes:
+            raise ValueError("no boxes to enclose")
+        return cls(
+            x_start=min(b.x_start for b in boxes),
+            x_stop=max(b.x_stop for b in boxes),
+            y_start=min(b.y_start for b in boxes),
+            y_stop=max(b.y_stop for b in boxes),
         )
 
     def intersection(self, other: Box) -> Box:
