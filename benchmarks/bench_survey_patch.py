@@ -5,8 +5,8 @@ The job: ``--exposures`` (default 50 and 200) noise-only exposure files of ``--c
 with small dithers and rotations), written once with cellcoadd's exposure writer; a patch
 of 2 x 2 inner cells plus its border (16 cells of 250 x 250 px), K = 3. The inputs are
 given to ``build_patch`` as exposure *sources* (:class:`cellcoadd.io.ExposureFile`):
-overlap is decided from the headers, and each worker loads one exposure cut to one cell
-at a time.
+overlap is decided from the headers, and each worker loads one exposure cut to one block
+of cells at a time.
 
 Every run happens in a fresh Python process, so its peak resident memory (``ru_maxrss``
 of the process, and of its worker processes) belongs to that run alone. For each number
@@ -16,8 +16,8 @@ of exposures: serial, the process pool of 2 workers, and (``--dask``) a dask
 SHA-256 of the written coadd (HDF5): equal hashes mean bit-identical outputs. Then the
 ratios: peak RSS at the largest over the smallest number of exposures (target: within
 20%), and the pool's speed-up over the serial run of the same size (target: within 10% of
-2x). ``--repeats`` interleaves rounds and reports medians. The load average is printed
-with each row.
+2x). ``--repeats`` interleaves rounds and reports medians. With each row: how many cores
+were idle in the second before the run (from ``/proc/stat``) and the load average after.
 
 Run as ``.venv/bin/python benchmarks/bench_survey_patch.py [--exposures 50,200] [--dask]``.
 """
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import format_table, machine_summary
+from common import format_table, idle_cores, machine_summary
 
 SKY_CENTER = (60.0, -30.0)
 PIXEL_SCALE = 0.2
@@ -131,6 +131,7 @@ def run_one(paths: list[str], executor: str, out: str) -> dict:
 def measure(paths: list[Path], executor: str, workdir: Path) -> dict:
     """:func:`run_one` in a fresh interpreter."""
     out = workdir / f"coadd-{executor}-{len(paths)}.h5"
+    idle = idle_cores(1.0)
     arguments = ([str(p) for p in paths], executor, str(out))
     code = (
         f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
@@ -142,7 +143,7 @@ def measure(paths: list[Path], executor: str, workdir: Path) -> dict:
     )
     if result.returncode != 0:
         raise RuntimeError(f"{executor} run failed:\n{result.stderr[-3000:]}")
-    return json.loads(result.stdout.strip().splitlines()[-1])
+    return {**json.loads(result.stdout.strip().splitlines()[-1]), "idle": idle}
 
 
 def main() -> None:
@@ -187,6 +188,7 @@ def main() -> None:
                 last["rss_worker_mb"],
                 last["used"],
                 last["sha256"][:12],
+                last["idle"],
                 last["load"],
             ]
         )
@@ -194,9 +196,9 @@ def main() -> None:
     print(
         format_table(
             ["exposures", "run", "wall s", "CPU s", "RSS main MB", "RSS worker MB", "inputs used"]
-            + ["coadd sha256", "load 1 min"],
+            + ["coadd sha256", "idle cores before", "load 1 min"],
             rows,
-            ["d", "s", ".1f", ".1f", ".0f", ".0f", "d", "s", ".2f"],
+            ["d", "s", ".1f", ".1f", ".0f", ".0f", "d", "s", ".2f", ".2f"],
         )
     )
     print()

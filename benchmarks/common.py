@@ -121,6 +121,26 @@ def machine_summary() -> str:
     return f"{model}, {cores} cores, {memory}, Python {platform.python_version()}"
 
 
+def idle_cores(seconds: float = 1.0) -> float:
+    """How many cores sat idle over the next ``seconds`` (from ``/proc/stat``; NaN if
+    unavailable): 2.0 on an idle 2-core machine, ~0 when other jobs keep both busy."""
+
+    def totals() -> tuple[float, float, int]:
+        with open("/proc/stat") as stat:
+            lines = stat.read().splitlines()
+        fields = [float(v) for v in lines[0].split()[1:]]
+        n_cpus = sum(1 for line in lines if line.startswith("cpu") and line[3:4].isdigit())
+        return fields[3] + fields[4], sum(fields[:8]), n_cpus  # idle + iowait, all
+
+    try:
+        idle0, all0, n_cpus = totals()
+        time.sleep(seconds)
+        idle1, all1, _ = totals()
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+    return n_cpus * (idle1 - idle0) / max(all1 - all0, 1.0)
+
+
 # --- synthetic inputs -------------------------------------------------------------------
 
 
