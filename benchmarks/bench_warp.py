@@ -6,7 +6,8 @@ planes per second of process CPU time (Mpix-plane/s), the median of repeated,
 interleaved runs after a warm-up call; CPU time keeps the per-core figure meaningful on a
 shared machine, and a method using several threads is charged for all of them.
 
-``cellcoadd`` is ``warp_planes`` on planes stored one after the other; ``interleaved`` is
+``cellcoadd`` is ``warp_planes`` on planes stored one after the other (which it copies
+into the interleaved layout first, the copy included); ``interleaved`` is
 ``accumulate_warped`` on the same planes stored pixel by pixel, the layout ``build_cell``
 uses (checked to give the same bits). Runs of all methods alternate, so each call starts
 with caches holding the other methods' data; ``inter. warm`` times ``accumulate_warped``
@@ -21,12 +22,33 @@ References, run on the same job in the same process:
 * GalSim ``InterpolatedImage`` with ``Lanczos(3)`` drawn through the cell's WCS with
   ``method="no_pixel"``, plane by plane (construction included: it is needed per plane).
 
+Arithmetic rate
+---------------
+The same run measures the core's peak and the rate of ``accumulate_warped`` (into a
+preallocated ``out``, the way the build calls it) on the rotated job, in GFLOP/s of
+process CPU time:
+
+* peak: a numba loop of independent chains of float64 multiply-adds over an array that
+  stays in L1, vectorised and contracted to FMA (``fastmath``, for this loop only); an FMA
+  counts as 2 FLOP. The best of several runs (a conservative peak: it only makes the
+  fractions smaller).
+* the kernel, per output pixel and plane: the 6x6 sums, 36 multiplications and 30
+  additions for the column sums plus 6 and 5 for the sum across them (77 FLOP), and the
+  accumulation ``out += weight * sum`` (2 FLOP); per output pixel, shared by its planes,
+  the two sets of six normalised Lanczos weights (``WEIGHT_FLOP``: the multiplications,
+  additions, subtractions and the division in
+  :func:`cellcoadd.builder.kernels.lanczos._lanczos_taps`, twice; comparisons, selects,
+  ``floor`` and integer conversions not counted). So ``79 + WEIGHT_FLOP / P`` FLOP per
+  output pixel-plane. ``% peak (72)`` counts only the 72 FLOP of the 36 multiply-adds of
+  the taps, a floor on any count.
+
 Run as ``.venv/bin/python benchmarks/bench_warp.py [--repeats N]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 from functools import partial
@@ -45,6 +67,52 @@ COADD_SCALE = 0.2  # arcsec / px
 EXPOSURE_SCALE = 0.26  # arcsec / px
 ROTATION_DEG = 30.0
 INPUT_SIZE = 300  # exposure cutout holding the rotated footprint with margin
+
+TAP_FLOP = 77  # per output pixel-plane: 6x6 sums (42 multiplications, 35 additions)
+ACCUMULATE_FLOP = 2  # per output pixel-plane: out += weight * sum
+WEIGHT_FLOP = 2 * 78  # per output pixel: x and y weights, 48 mul + 29 add/sub + 1 div each
+MULTIPLY_ADD_FLOP = 72  # per output pixel-plane: the 36 multiply-adds of the taps alone
+
+_PEAK_CHAIN = 8  # dependent multiply-adds per element and pass
+_PEAK_ELEMENTS = 512  # 4 kB: in L1; independent elements fill the vector lanes
+
+
+@numba.njit(fastmath=True, cache=True)
+def _multiply_adds(values: np.ndarray, passes: int, factor: float, offset: float) -> None:
+    """``passes * _PEAK_CHAIN`` multiply-adds on every element of ``values``, in place.
+
+    The elements are independent (vector lanes and enough chains in flight to hide the
+    latency); each pass reads and writes an element once, 8 FMA per load and store.
+    """
+    for _ in range(passes):
+        for i in range(values.shape[0]):
+            value = values[i]
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            value = value * factor + offset
+            values[i] = value
+
+
+def peak_gflops(repeats: int = 7, passes: int = 20_000) -> float:
+    """The core's float64 multiply-add rate (GFLOP/s of CPU time), best of ``repeats``."""
+    values = np.linspace(0.0, 1.0, _PEAK_ELEMENTS)
+    _multiply_adds(values, 1, 0.5, 0.25)  # compile / load from the cache
+    best = np.inf
+    for _ in range(repeats):
+        start = time.process_time()
+        _multiply_adds(values, passes, 0.5, 0.25)  # converges to 0.5: no overflow
+        best = min(best, time.process_time() - start)
+    return 2 * _PEAK_CHAIN * _PEAK_ELEMENTS * passes / best / 1e9
+
+
+def flop_per_pixel_plane(n_planes: int) -> float:
+    """The FLOP count of ``accumulate_warped`` per output pixel and plane."""
+    return TAP_FLOP + ACCUMULATE_FLOP + WEIGHT_FLOP / n_planes
 
 
 def make_job(n_planes: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -81,6 +149,13 @@ def warp_ours_interleaved(
     pixels: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, _: np.ndarray
 ) -> np.ndarray:
     out = np.zeros((pixels.shape[2], *x_src.shape))
+    return accumulate_warped(pixels, x_src, y_src, out, np.ones(pixels.shape[2]))
+
+
+def accumulate_into(
+    pixels: np.ndarray, x_src: np.ndarray, y_src: np.ndarray, out: np.ndarray
+) -> np.ndarray:
+    """``accumulate_warped`` alone, into a preallocated ``out`` (as the build calls it)."""
     return accumulate_warped(pixels, x_src, y_src, out, np.ones(pixels.shape[2]))
 
 
@@ -155,10 +230,12 @@ def main() -> None:
         "galsim L3": warp_galsim,
     }
     n_pixels = OUTPUT_SIZE * OUTPUT_SIZE
+    load_start = os.getloadavg()[0]
+    peak = peak_gflops()
     print(
         f'warp: {OUTPUT_SIZE}x{OUTPUT_SIZE} output, {COADD_SCALE}"/px from {EXPOSURE_SCALE}"/px '
         f"rotated {ROTATION_DEG:g} deg; 1 numba thread; median CPU time of {args.repeats}; "
-        f"{machine_summary()}"
+        f"{machine_summary()}; load average (1 min) {load_start:.2f} at start"
     )
     print(
         "rates in Mpix-plane/s; interleaved: accumulate_warped, as the build calls it; "
@@ -167,6 +244,7 @@ def main() -> None:
         "plane\n"
     )
     rows = []
+    flop_rows = []
     for n_planes in (1, 4, 6):
         job = make_job(n_planes, seed=n_planes)
         # the build's layout: all planes of an input pixel side by side
@@ -175,11 +253,25 @@ def main() -> None:
         calls["interleaved"] = calls["inter. warm"] = partial(
             warp_ours_interleaved, pixels, *job[1:]
         )
+        out = np.zeros((n_planes, OUTPUT_SIZE, OUTPUT_SIZE))
+        calls["accumulate"] = partial(accumulate_into, pixels, job[1], job[2], out)
         results = {name: call() for name, call in calls.items()}  # warm-up
         if not np.array_equal(results["interleaved"], results["cellcoadd"]):
             raise AssertionError("the interleaved kernel differs from warp_planes")
         seconds = alternating_medians(calls, args.repeats, warm={"inter. warm"})
-        rates = {name: n_pixels * n_planes / seconds[name] / 1e6 for name in methods}
+        rates = {name: n_pixels * n_planes / seconds[name] / 1e6 for name in calls}
+        flop = flop_per_pixel_plane(n_planes)
+        gflops = rates["accumulate"] * flop / 1e3
+        flop_rows.append(
+            (
+                n_planes,
+                flop,
+                rates["accumulate"],
+                gflops,
+                100 * gflops / peak,
+                100 * rates["accumulate"] * MULTIPLY_ADD_FLOP / 1e3 / peak,
+            )
+        )
         difference = np.abs(results["cellcoadd"][0] - results["galsim L3"][0]).max()
         rows.append(
             (
@@ -194,6 +286,14 @@ def main() -> None:
     header = ["planes", *methods, "ours/scipy", "ours/galsim", "warm/galsim", "max diff gs"]
     formats = ["d", *[".2f"] * (len(header) - 2), ".1e"]
     print(format_table(header, rows, formats))
+    print(
+        f"\naccumulate_warped into a preallocated out (rotated job), against the core's peak "
+        f"of {peak:.1f} GFLOP/s (float64 FMA loop, best of 7); FLOP/px-plane = "
+        f"{TAP_FLOP} + {ACCUMULATE_FLOP} + {WEIGHT_FLOP}/P (module docstring)\n"
+    )
+    flop_header = ["planes", "FLOP/px-plane", "Mpix-plane/s", "GFLOP/s", "% peak", "% peak (72)"]
+    print(format_table(flop_header, flop_rows, ["d", ".1f", ".1f", ".2f", ".1f", ".1f"]))
+    print(f"\nload average (1 min) at end {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

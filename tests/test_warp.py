@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.lanczos import TABLE_WIDTH
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
 
@@ -278,3 +279,111 @@ def test_input_validation():
         warp_planes(planes, good, good, scale=np.ones((2, 2)))
     with pytest.raises(ValueError, match="int32"):
         warp_mask_or(np.zeros((20, 20), dtype=np.int64), good, good)
+
+
+def smooth_positions(shape: tuple[int, int], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Input positions (around (60, 60)) of a ``shape`` output under a random smooth
+    mapping: rotation, scale and shear, plus quadratic and sinusoidal terms."""
+    rng = np.random.default_rng(seed)
+    a, b, c, d = rng.uniform(-0.6, 0.6, 4)
+    q = rng.uniform(-2e-3, 2e-3, 6)
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    xx -= shape[1] / 2
+    yy -= shape[0] / 2
+    x_src = 60.3 + a * xx + b * yy + q[0] * xx**2 + q[1] * xx * yy + q[2] * np.sin(yy / 7)
+    y_src = 61.7 + c * xx + d * yy + q[3] * yy**2 + q[4] * xx * yy + q[5] * np.cos(xx / 5)
+    return x_src, y_src
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_value_depends_only_on_the_position(seed):
+    # The builder warps a large region once and cuts cells out of it: every output
+    # pixel must get the same bits wherever it lies in the output (vector lanes or
+    # scalar remainders, first column, box size) and whatever the number of planes.
+    rng = np.random.default_rng(100 + seed)
+    planes = rng.normal(size=(6, 130, 130))
+    planes[:, 60:62, 50:53] = rng.normal(size=(6, 2, 3)) * 1e6  # far-off values too
+    shape = (37, 53)
+    x_src, y_src = smooth_positions(shape, seed)
+    x_src[5, 7], y_src[5, 7] = 50.0, 70.0  # integral: copied
+    x_src[9, 11:20] = np.round(x_src[9, 11:20])  # integral along x only
+    weights = rng.uniform(0.5, 2.0, 6)
+    scales = rng.uniform(0.5, 1.5, (2, *shape))
+    which = np.array([0, 0, 0, 1, -1, 0])
+    pixels = np.ascontiguousarray(planes.transpose(1, 2, 0))
+
+    def warp(n_planes: int, rows: slice, cols: slice) -> np.ndarray:
+        x, y = x_src[rows, cols], y_src[rows, cols]
+        return accumulate_warped(
+            np.ascontiguousarray(pixels[..., :n_planes]),
+            np.ascontiguousarray(x),
+            np.ascontiguousarray(y),
+            np.zeros((n_planes, *x.shape)),
+            weights[:n_planes],
+            np.ascontiguousarray(scales[:, rows, cols]),
+            which[:n_planes],
+        )
+
+    everything = slice(None)
+    whole = warp(6, everything, everything)
+    assert np.array_equal(warp(5, everything, everything), whole[:5])
+    unit = warp_planes(planes, x_src, y_src)
+    for row0, col0, height, width in [
+        (0, 0, 37, 1),
+        (0, 1, 37, 52),
+        (3, 5, 1, 17),
+        (7, 11, 13, 9),
+        (1, 3, 35, 47),
+        (20, 27, 17, 26),
+        (36, 52, 1, 1),
+    ]:
+        rows, cols = slice(row0, row0 + height), slice(col0, col0 + width)
+        for n_planes in (5, 6):
+            part = warp(n_planes, rows, cols)
+            assert np.array_equal(part, whole[:n_planes, rows, cols]), (row0, col0, n_planes)
+        by_plane = warp_planes(
+            planes[3:],
+            np.ascontiguousarray(x_src[rows, cols]),
+            np.ascontiguousarray(y_src[rows, cols]),
+        )
+        assert np.array_equal(by_plane, unit[3:, rows, cols])
+
+
+def test_long_rows_are_cut_without_a_trace():
+    # Rows longer than a table are resampled in runs; a pixel's bits do not depend on the
+    # run it falls in.
+    rng = np.random.default_rng(7)
+    planes = rng.normal(size=(4, 100, 300))
+    n_cols = 2 * TABLE_WIDTH + 41
+    yy, xx = np.mgrid[0:3, 0:n_cols].astype(np.float64)
+    x_src = 20.25 + 0.45 * xx + 0.3 * yy + 0.2 * np.sin(xx / 9)
+    y_src = 30.4 + 0.05 * xx + 0.7 * yy + 0.3 * np.cos(xx / 13)
+    pixels = np.ascontiguousarray(planes.transpose(1, 2, 0))
+    whole = accumulate_warped(pixels, x_src, y_src, np.zeros((4, *x_src.shape)), np.ones(4))
+    for col0 in (1, TABLE_WIDTH - 3, TABLE_WIDTH + 17, 2 * TABLE_WIDTH - 36):
+        cols = slice(col0, col0 + 37)
+        part = accumulate_warped(
+            pixels,
+            np.ascontiguousarray(x_src[:, cols]),
+            np.ascontiguousarray(y_src[:, cols]),
+            np.zeros((4, 3, 37)),
+            np.ones(4),
+        )
+        assert np.array_equal(part, whole[:, :, cols]), col0
+
+
+def test_accumulating_equals_warping_into_zeros_then_adding():
+    # How the builder uses a warp of a large region: into zeros, then added to the sums.
+    rng = np.random.default_rng(12)
+    planes = rng.normal(size=(5, 130, 130))
+    x_src, y_src = smooth_positions((29, 31), 5)
+    pixels = np.ascontiguousarray(planes.transpose(1, 2, 0))
+    weights = rng.uniform(0.5, 2.0, 5)
+    scales = rng.uniform(0.5, 1.5, (1, *x_src.shape))
+    which = np.array([0, 0, -1, 0, 0])
+    start = rng.normal(size=(5, *x_src.shape))
+    direct = accumulate_warped(pixels, x_src, y_src, start.copy(), weights, scales, which)
+    into_zeros = accumulate_warped(
+        pixels, x_src, y_src, np.zeros_like(start), weights, scales, which
+    )
+    assert np.array_equal(direct, start + into_zeros)

@@ -1,181 +1,111 @@
 """Accumulating a warp straight into running sums, for inputs stored pixel by pixel.
 
-The builder keeps an exposure's planes interleaved (all planes of a pixel together), so
-each tap reads them in one go and they fill the lanes of SIMD vectors (up to eight planes
-per pass over a 6x6 block: vectors of 4, 2 and 1 lanes); the kernel weights and the
-order of the sums are those of :mod:`cellcoadd.builder.kernels.warp`, and the result equals
-``warp_planes`` bit for bit. The footprints of pixels a few steps ahead are prefetched,
-as a rotated footprint walks through memory in a pattern the hardware does not predict.
+The builder keeps an exposure's planes interleaved (all planes of a pixel together), so a
+row of a 6x6 footprint is one run of ``6 P`` adjacent values that SIMD vectors read
+whole (:mod:`cellcoadd.builder.kernels.block_sums`). The output is resampled in runs of up
+to ``TABLE_WIDTH`` pixels along a row: the Lanczos weights and footprint indices of the
+run first (vectorised over pixels, :func:`cellcoadd.builder.kernels.lanczos.fill_table`),
+then the 6x6 sums of every pixel into a small buffer, then ``out += factor * sum`` per
+plane, vectorised over pixels. The output is swept in vertical strips of that width, so
+consecutive runs read overlapping input and a large output does not stream its whole
+footprint through the caches for every row.
+
+Every value depends only on the output pixel's position, the input and the weights: the
+same operations in the same order for every pixel and plane, whatever its place in the
+output, the strip, the vector lanes or the number of planes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numba
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 from numpy.typing import ArrayLike
 
+from cellcoadd.builder.kernels.block_sums import (
+    MAX_PLANES_AT_ONCE,
+    block_sums_1,
+    block_sums_2,
+    block_sums_3,
+    block_sums_4,
+    block_sums_5,
+    block_sums_6,
+    block_sums_7,
+    block_sums_8,
+    block_sums_group,
+    prefetch,
+)
 from cellcoadd.builder.kernels.lanczos import (
     N_TAPS,
     TABLE_ROWS,
-    WEIGHT_Y,
-    exact_source_index,
-    fill_row_table,
-    footprint_corner,
-)
-from cellcoadd.builder.kernels.warp import (
-    LLVM_I32,
-    LLVM_I64,
-    block_sum_adjacent,
+    TABLE_WIDTH,
     check_positions,
-    column_sums,
-    is_flat_array,
-    splat,
-    table_weights,
-    tree_sum,
+    fill_table,
 )
-
-
-def _make_block_sums(width: int) -> Callable:
-    """Intrinsic ``(flat, corner, row_stride, tap_stride, table, col)`` -> ``width`` sums.
-
-    The 6x6 weighted sums of ``width`` planes stored next to each other (interleaved
-    layout): tap ``(a, b)`` of plane ``p`` is ``flat[corner + a row_stride + b tap_stride
-    + p]``; weights as for :func:`block_sum_adjacent`. The planes are split into vectors
-    of 4, 2 and 1 lanes that share one pass over the taps.
-    """
-    pieces = [4] * (width // 4) + [2] * (width % 4 // 2) + [1] * (width % 2)
-
-    def typer(typingctx, flat, corner, row_stride, tap_stride, table, col):
-        if not is_flat_array(flat):
-            return None
-        result = types.UniTuple(types.float64, width)
-        signature = result(flat, corner, row_stride, tap_stride, table, col)
-
-        def codegen(context, builder, signature, args):
-            flat, corner, row_stride, tap_stride, table, col = args
-            flat_type, table_type = signature.args[0], signature.args[4]
-            weights_y = table_weights(context, builder, table_type, table, col, WEIGHT_Y)
-            weights_x = table_weights(context, builder, table_type, table, col, 0)
-            lanes = []
-            first = 0
-            for piece in pieces:
-                splats = [splat(builder, weight, piece) for weight in weights_y]
-                piece_corner = builder.add(corner, ir.Constant(LLVM_I64, first))
-                xterms = []
-                for b in range(N_TAPS):
-                    offset = builder.mul(tap_stride, ir.Constant(LLVM_I64, b))
-                    sums = column_sums(
-                        context,
-                        builder,
-                        flat_type,
-                        flat,
-                        builder.add(piece_corner, offset),
-                        row_stride,
-                        splats,
-                        piece,
-                    )
-                    xterms.append(builder.fmul(splat(builder, weights_x[b], piece), sums))
-                total = tree_sum(builder, xterms)
-                lanes += [
-                    builder.extract_element(total, ir.Constant(LLVM_I32, k)) for k in range(piece)
-                ]
-                first += piece
-            return context.make_tuple(builder, result, lanes)
-
-        return signature, codegen
-
-    return intrinsic(typer)
-
-
-@intrinsic
-def _prefetch(typingctx, flat, index):
-    """Ask the processor to bring the cache line holding ``flat[index]`` into its caches."""
-    signature = types.void(flat, index)
-
-    def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        byte_pointer = ir.IntType(8).as_pointer()
-        prefetch = builder.module.declare_intrinsic(
-            "llvm.prefetch",
-            [byte_pointer],
-            fnty=ir.FunctionType(ir.VoidType(), [byte_pointer, LLVM_I32, LLVM_I32, LLVM_I32]),
-        )
-        pointer = builder.bitcast(builder.gep(data, [args[1]], inbounds=True), byte_pointer)
-        # read, keep in all cache levels, data cache
-        flags = [ir.Constant(LLVM_I32, value) for value in (0, 3, 1)]
-        builder.call(prefetch, [pointer, *flags])
-        return context.get_dummy_value()
-
-    return signature, codegen
-
-
-# Along an output row, the footprints of consecutive pixels overlap by most of their six
-# input pixels, so the footprint of every fourth pixel, eight pixels ahead, covers what is
-# about to be read: prefetching it hides the memory latency of lines not yet in cache.
-_PREFETCH_EVERY = 4
-_PREFETCH_AHEAD = 8
-_LINE_ELEMENTS = 8  # float64 per 64-byte cache line
 
 
 @numba.njit(cache=True, inline="always")
-def _prefetch_footprint(
+def _block_sums(
+    n_planes: int,
     flat: np.ndarray,
+    corner: int,
+    row_stride: int,
     table: np.ndarray,
     col: int,
-    row_stride: np.uint64,
-    tap_stride: np.uint64,
-    span: int,
+    sums: np.ndarray,
 ) -> None:
-    """Prefetch the 6x6 footprint of output pixel ``col``: six rows of ``span`` elements
-    from its first tap on (see :func:`cellcoadd.builder.kernels.lanczos.footprint_corner`)."""
-    start = footprint_corner(table, col, row_stride, tap_stride)
-    last = np.uint64(span - 1)
-    for _ in range(N_TAPS):
-        # numba intrinsic: mypy sees the typer's signature, with typingctx first
-        for offset in range(0, span, _LINE_ELEMENTS):
-            _prefetch(flat, start + np.uint64(offset))  # type: ignore[call-arg]
-        _prefetch(flat, start + last)  # type: ignore[call-arg]
-        start += row_stride
+    """``sums[p, col]``: the 6x6 sums of output pixel ``col`` of the table, every plane."""
+    if n_planes == 1:
+        block_sums_1(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 2:
+        block_sums_2(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 3:
+        block_sums_3(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 4:
+        block_sums_4(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 5:
+        block_sums_5(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 6:
+        block_sums_6(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 7:
+        block_sums_7(flat, corner, row_stride, table, col, sums)
+    elif n_planes == 8:
+        block_sums_8(flat, corner, row_stride, table, col, sums)
+    else:
+        # groups of eight, the last overlapping the one before: same sums, same bits
+        plane = 0
+        while plane < n_planes:
+            first = min(plane, n_planes - MAX_PLANES_AT_ONCE)
+            block_sums_group(flat, corner, row_stride, n_planes, table, col, sums, first)
+            plane += MAX_PLANES_AT_ONCE
 
 
-_MAX_PLANES_AT_ONCE = 8
-(
-    _block_sums2,
-    _block_sums3,
-    _block_sums4,
-    _block_sums5,
-    _block_sums6,
-    _block_sums7,
-    _block_sums8,
-) = (_make_block_sums(width) for width in range(2, _MAX_PLANES_AT_ONCE + 1))
+# A footprint walks through the input along a line the hardware prefetchers do not
+# follow; each row's leading edge is new to the caches. The footprint of the pixel
+# _PREFETCH_AHEAD ahead is prefetched every _PREFETCH_EVERY pixels (footprints of
+# neighbours overlap by most of their taps), long enough before it is read to hide the
+# latency of memory. The next row's positions, scales and output values are prefetched
+# during this row's sums: each is a short burst far from the last, which the hardware
+# would fetch only after the first misses.
+_PREFETCH_EVERY = 4
+_PREFETCH_AHEAD = 8
+_LINE = 8  # float64 per 64-byte cache line
 
 
 @numba.njit(cache=True, inline="always")
-def _add_sums(
-    out: np.ndarray,
-    row: int,
-    col: int,
-    factors: np.ndarray,
-    first_plane: int,
-    sums: tuple[float, ...],
-    skip: int,
-) -> None:
-    """``out[first_plane + k, row, col] += factors[first_plane + k, col] * sums[k]``,
-    for ``k >= skip``."""
-    for k in range(skip, len(sums)):
-        plane = first_plane + k
-        out[plane, row, col] += factors[plane, col] * sums[k]
+def _prefetch_footprint(flat: np.ndarray, corner: int, row_stride: int, span: int) -> None:
+    """Prefetch the six rows of ``span`` values of the footprint starting at ``corner``."""
+    for a in range(N_TAPS):
+        start = corner + a * row_stride
+        for offset in range(0, span, _LINE):
+            prefetch(flat, start + offset)
+        prefetch(flat, start + span - 1)
 
 
 @numba.njit(cache=True)
-def _accumulate_interleaved(
+def resample_interleaved(
     flat_pixels: np.ndarray,
-    nx_in: int,
+    input_width: int,
+    origin: tuple[int, int],
     x_src: np.ndarray,
     y_src: np.ndarray,
     out: np.ndarray,
@@ -183,65 +113,70 @@ def _accumulate_interleaved(
     scales: np.ndarray,
     plane_scales: np.ndarray,
 ) -> None:
-    """Kernel of :func:`accumulate_warped`; ``flat_pixels`` is ``(ny_in, nx_in, P)`` raveled.
+    """``out[p] += plane_weights[p] * scales[plane_scales[p]] * warp(plane p)``.
 
-    Up to eight planes go in one pass over the taps; more go eight at a time, the last
-    group overlapping planes already done (their sums are dropped), so every plane's
-    arithmetic is the same whatever ``P``.
+    ``flat_pixels`` is an ``(ny, input_width, P)`` C-ordered array raveled, whose pixel
+    ``[0, 0]`` is input pixel ``origin`` (x, y); the positions must keep every tap inside
+    it (checked by the callers). ``plane_scales[p] = -1`` means no scale for plane ``p``.
     """
     n_planes = plane_weights.shape[0]
-    n_cols = x_src.shape[1]
-    tap_stride = np.uint64(n_planes)
-    row_stride = np.uint64(nx_in) * tap_stride
-    table = np.empty((TABLE_ROWS, n_cols))
-    factors = np.empty((n_planes, n_cols))
-    span = N_TAPS * n_planes  # elements in one row of a footprint
-    for row in range(x_src.shape[0]):
-        fill_row_table(x_src, y_src, row, table)
-        for p in range(n_planes):
-            which = plane_scales[p]
-            weight = plane_weights[p]
-            for col in range(n_cols):
-                factors[p, col] = weight * scales[which, row, col] if which >= 0 else weight
-        for col in range(n_cols):
-            ahead = col + _PREFETCH_AHEAD
-            if col % _PREFETCH_EVERY == 0 and ahead < n_cols:
-                _prefetch_footprint(flat_pixels, table, ahead, row_stride, tap_stride, span)
-            source = exact_source_index(table, col, row_stride, tap_stride)
-            if source >= 0:
-                # Integral position: copy, as warp_planes does.
-                for p in range(n_planes):
-                    value = flat_pixels[np.uint64(source) + np.uint64(p)]
-                    out[p, row, col] += factors[p, col] * value
-                continue
-            corner = footprint_corner(table, col, row_stride, tap_stride)
-            args = (flat_pixels, corner, row_stride, tap_stride, table, col)
-            if n_planes == 1:
-                # A lone plane: its six taps along x are adjacent.
-                # numba intrinsic: mypy sees the typer's signature, with typingctx first
-                total = block_sum_adjacent(flat_pixels, corner, row_stride, table, col)  # type: ignore[call-arg, var-annotated]
-                out[0, row, col] += factors[0, col] * total
-            elif n_planes == 2:
-                _add_sums(out, row, col, factors, 0, _block_sums2(*args), 0)
-            elif n_planes == 3:
-                _add_sums(out, row, col, factors, 0, _block_sums3(*args), 0)
-            elif n_planes == 4:
-                _add_sums(out, row, col, factors, 0, _block_sums4(*args), 0)
-            elif n_planes == 5:
-                _add_sums(out, row, col, factors, 0, _block_sums5(*args), 0)
-            elif n_planes == 6:
-                _add_sums(out, row, col, factors, 0, _block_sums6(*args), 0)
-            elif n_planes == 7:
-                _add_sums(out, row, col, factors, 0, _block_sums7(*args), 0)
-            else:
-                p = 0
-                while p < n_planes:
-                    first = min(p, n_planes - _MAX_PLANES_AT_ONCE)
-                    sums = _block_sums8(
-                        flat_pixels, corner + np.uint64(first), row_stride, tap_stride, table, col
-                    )
-                    _add_sums(out, row, col, factors, first, sums, p - first)
-                    p += _MAX_PLANES_AT_ONCE
+    n_rows, n_cols = x_src.shape
+    row_stride = input_width * n_planes
+    table = np.empty((TABLE_ROWS, TABLE_WIDTH))
+    corners = np.empty(TABLE_WIDTH, dtype=np.int64)
+    sources = np.empty(TABLE_WIDTH, dtype=np.int64)
+    sums = np.empty((n_planes, TABLE_WIDTH))
+    span = N_TAPS * n_planes  # values in a row of a footprint
+    plane_size = n_rows * n_cols
+    n_scales = scales.shape[0] if scales.shape[1:] == (n_rows, n_cols) else 0
+    for first_col in range(0, n_cols, TABLE_WIDTH):
+        stop_col = min(first_col + TABLE_WIDTH, n_cols)
+        n = stop_col - first_col
+        for row in range(n_rows):
+            fill_table(
+                x_src[row, first_col:stop_col],
+                y_src[row, first_col:stop_col],
+                row_stride,
+                n_planes,
+                origin,
+                table,
+                corners,
+                sources,
+            )
+            # flat index of the next run's first pixel in (rows, cols) and (planes, rows, cols)
+            following = (row + 1) * n_cols + first_col if row + 1 < n_rows else -1
+            for col in range(n):
+                ahead = col + _PREFETCH_AHEAD
+                if col % _PREFETCH_EVERY == 0 and ahead < n:
+                    _prefetch_footprint(flat_pixels, corners[ahead], row_stride, span)
+                if following >= 0 and col % _LINE == 0:
+                    index = following + col
+                    prefetch(x_src, index)
+                    prefetch(y_src, index)
+                    for p in range(n_planes):
+                        prefetch(out, p * plane_size + index)
+                    for scale_plane in range(n_scales):
+                        prefetch(scales, scale_plane * plane_size + index)
+                source = sources[col]
+                if source >= 0:
+                    # integral position: a copy, bit for bit and immune to non-finite
+                    # neighbours
+                    for p in range(n_planes):
+                        sums[p, col] = flat_pixels[source + p]
+                else:
+                    _block_sums(n_planes, flat_pixels, corners[col], row_stride, table, col, sums)
+            for p in range(n_planes):
+                weight = plane_weights[p]
+                which = plane_scales[p]
+                target = out[p, row, first_col:stop_col]
+                values = sums[p]
+                if which >= 0:
+                    scale = scales[which, row, first_col:stop_col]
+                    for col in range(n):
+                        target[col] += (weight * scale[col]) * values[col]
+                else:
+                    for col in range(n):
+                        target[col] += weight * values[col]
 
 
 def accumulate_warped(
@@ -259,7 +194,9 @@ def accumulate_warped(
     ``plane_weights[p] * scales[plane_scales[p]] * warp_planes(planes)[p]`` would add, or
     ``plane_weights[p] * warp_planes(planes)[p]`` when ``plane_scales[p]`` is -1. Storing
     the planes of one input pixel together lets one pass over each 6x6 block serve all of
-    them, and accumulating in the kernel saves the temporaries.
+    them, and accumulating in the kernel saves the temporaries. The value added at an
+    output pixel depends only on its position, the input and the weights (not on the
+    output's shape or the pixel's place in it), and a plane's on no other plane.
 
     Parameters
     ----------
@@ -267,9 +204,10 @@ def accumulate_warped(
         The ``P`` input planes, interleaved: ``pixels[y, x]`` holds every plane's value
         at input pixel ``(x, y)``.
     x_src, y_src : ndarray, shape (ny_out, nx_out), float64
-        Output pixel centres in input pixel coordinates, as for :func:`warp_planes`.
+        Output pixel centres in input pixel coordinates, as for
+        :func:`~cellcoadd.builder.kernels.warp.warp_planes`.
     out : ndarray, shape (P, ny_out, nx_out), float64
-        C-contiguous accumulator, updated in place.
+        C-contiguous accumulator, updated in place (``out[p] += ...``).
     plane_weights : array_like, shape (P,)
         Finite scalar weight of each plane.
     scales : ndarray, shape (S, ny_out, nx_out), optional
@@ -307,7 +245,7 @@ def accumulate_warped(
             raise ValueError(f"plane_scales must lie in [-1, {scales.shape[0] - 1}]")
     if x_src.size and n_planes:
         flat_pixels = np.ascontiguousarray(pixels).reshape(-1)
-        _accumulate_interleaved(
-            flat_pixels, int(pixels.shape[1]), x_src, y_src, out, weights, scales, which
+        resample_interleaved(
+            flat_pixels, int(pixels.shape[1]), (0, 0), x_src, y_src, out, weights, scales, which
         )
     return out

@@ -1,4 +1,4 @@
-"""Normalised Lanczos-3 weights, computed for a whole output row at a time.
+"""Normalised Lanczos-3 weights, computed for a run of output pixels at a time.
 
 Conventions (see :mod:`cellcoadd.builder.kernels.warp`): 0-based input pixel coordinates with
 pixel centres at integers; the taps of a position ``x`` are the input pixels
@@ -9,8 +9,8 @@ Cost: per output pixel and axis one ``sin``/``cos`` pair of a small angle (a sho
 series) and one division. ``sin(pi (d - k)) = (-1)^k sin(pi d)`` is common to all taps
 and cancels in the normalisation; ``sin(pi (d - k) / 3)`` follows from ``sin(pi d / 3)``
 and ``cos(pi d / 3)`` by angle addition with the constants ``cos(k pi/3)``, ``sin(k pi/3)``.
-The weights of a whole output row go into a table (:func:`fill_row_table`) in a branch-free
-loop that the compiler vectorises.
+The weights of a run of output pixels go into a table (:func:`fill_table`) in branch-free
+loops that the compiler vectorises.
 """
 
 from __future__ import annotations
@@ -122,9 +122,55 @@ def _lanczos_taps(
     )
 
 
-# Rows of the per-output-row table filled by fill_row_table: x weights, floor(x), exact x,
-# then the same for y.
+def check_positions(
+    x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate the output->input positions; return them as C-contiguous float64 arrays."""
+    x_src, y_src, _ = checked_positions_and_taps(x_src, y_src, input_shape)
+    return x_src, y_src
+
+
+def checked_positions_and_taps(
+    x_src: np.ndarray, y_src: np.ndarray, input_shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """:func:`check_positions`, and the range of first taps ``(x_lo, x_hi, y_lo, y_hi)``
+    (all zero for an empty output)."""
+    x_src = np.asarray(x_src)
+    y_src = np.asarray(y_src)
+    for name, values in (("x_src", x_src), ("y_src", y_src)):
+        if values.ndim != 2:
+            raise ValueError(f"{name} must be 2-D (ny_out, nx_out), got shape {values.shape}")
+        if values.dtype != np.float64:
+            raise ValueError(f"{name} must be float64, got {values.dtype}")
+    if x_src.shape != y_src.shape:
+        raise ValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
+    if x_src.size == 0:
+        return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (0, 0, 0, 0)
+    # min and max propagate NaN and expose infinities: one pass each checks both.
+    ranges = [(float(values.min()), float(values.max())) for values in (x_src, y_src)]
+    if not all(math.isfinite(bound) for bounds in ranges for bound in bounds):
+        raise ValueError("x_src and y_src must be finite")
+    ny_in, nx_in = input_shape
+    taps = []
+    for axis, (low, high), size in (("x", ranges[0], nx_in), ("y", ranges[1], ny_in)):
+        first_tap = math.floor(low) - (KERNEL_HALF_WIDTH - 1)
+        last_tap = math.floor(high) + KERNEL_HALF_WIDTH
+        if first_tap < 0 or last_tap > size - 1:
+            raise ValueError(
+                f"kernel taps along {axis} span input pixels [{first_tap}, {last_tap}] "
+                f"but the input has pixels [0, {size - 1}]"
+            )
+        taps += [first_tap, last_tap - (2 * KERNEL_HALF_WIDTH - 1)]
+    x_lo, x_hi, y_lo, y_hi = taps
+    return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (x_lo, x_hi, y_lo, y_hi)
+
+
+# The table of a run of up to TABLE_WIDTH output pixels along a row (one column each):
+# rows 0-5 the x weights, 6 floor(x), 7 the exact x tap (or -1), rows 8-15 the same for y.
 TABLE_ROWS = 16
+TABLE_WIDTH = 256
+"""Output pixels per table: the kernels resample rows in runs of this many pixels."""
+WEIGHT_X = 0
 _FLOOR_X, _EXACT_X = N_TAPS, N_TAPS + 1
 WEIGHT_Y = 8
 _FLOOR_Y, _EXACT_Y = WEIGHT_Y + N_TAPS, WEIGHT_Y + N_TAPS + 1
@@ -145,34 +191,36 @@ def _axis_table(positions: np.ndarray, table: np.ndarray, base: int) -> None:
         table[base + 7, i] = exact
 
 
-@numba.njit(cache=True, inline="always")
-def fill_row_table(x_src: np.ndarray, y_src: np.ndarray, row: int, table: np.ndarray) -> None:
-    """Fill ``table`` (``(TABLE_ROWS, nx_out)``) for output row ``row``.
+@numba.njit(cache=True)
+def fill_table(
+    x_src: np.ndarray,
+    y_src: np.ndarray,
+    row_stride: int,
+    tap_stride: int,
+    origin: tuple[int, int],
+    table: np.ndarray,
+    corners: np.ndarray,
+    sources: np.ndarray,
+) -> None:
+    """Weights and input indices of a run of output pixels at input positions ``(x_src,
+    y_src)`` (1-D, at most ``TABLE_WIDTH`` long).
 
-    Rows 0-5: x weights (:func:`_lanczos_taps`), 6: floor(x), 7: exact x; rows 8-15: the
-    same for y.
+    Fills ``table`` (``(TABLE_ROWS, TABLE_WIDTH)``: rows 0-5 the x weights of
+    :func:`_lanczos_taps`, 6 floor(x), 7 the exact x tap or -1; 8-15 the same for y) and,
+    for input pixel ``(x, y)`` stored at flat index ``(y - origin[1]) row_stride + (x -
+    origin[0]) tap_stride``, ``corners[i]``: the index of the first tap (top left of the
+    6x6 footprint); ``sources[i]``: the index of the input pixel the output pixel
+    coincides with, or -1. Loops over pixels without branches: they vectorise.
     """
-    _axis_table(x_src[row], table, 0)
-    _axis_table(y_src[row], table, WEIGHT_Y)
-
-
-@numba.njit(cache=True, inline="always")
-def footprint_corner(
-    table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.uint64
-) -> np.uint64:
-    """Flat index of the first tap (top-left of the 6x6 block) of output pixel ``col``."""
-    first_x = np.uint64(np.int64(table[_FLOOR_X, col]) - 2)
-    first_y = np.uint64(np.int64(table[_FLOOR_Y, col]) - 2)
-    return first_y * row_stride + first_x * tap_stride
-
-
-@numba.njit(cache=True, inline="always")
-def exact_source_index(
-    table: np.ndarray, col: int, row_stride: np.uint64, tap_stride: np.uint64
-) -> np.int64:
-    """Flat index of the input pixel an output pixel coincides with, or -1."""
-    exact_x = table[_EXACT_X, col]
-    exact_y = table[_EXACT_Y, col]
-    if exact_x < 0.0 or exact_y < 0.0:
-        return np.int64(-1)
-    return np.int64(np.uint64(exact_y) * row_stride + np.uint64(exact_x) * tap_stride)
+    n = x_src.shape[0]
+    _axis_table(x_src, table, WEIGHT_X)
+    _axis_table(y_src, table, WEIGHT_Y)
+    x0, y0 = origin
+    for i in range(n):
+        first_x = np.int64(table[_FLOOR_X, i]) - (KERNEL_HALF_WIDTH - 1) - x0
+        first_y = np.int64(table[_FLOOR_Y, i]) - (KERNEL_HALF_WIDTH - 1) - y0
+        corners[i] = first_y * row_stride + first_x * tap_stride
+        exact_x = table[_EXACT_X, i]
+        exact_y = table[_EXACT_Y, i]
+        source = (np.int64(exact_y) - y0) * row_stride + (np.int64(exact_x) - x0) * tap_stride
+        sources[i] = source if (exact_x >= 0.0) & (exact_y >= 0.0) else -1
