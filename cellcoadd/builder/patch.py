@@ -21,7 +21,6 @@ traceback.
 from __future__ import annotations
 
 import contextlib
-import math
 import traceback
 from collections.abc import Sequence
 from concurrent.futures import (
@@ -97,15 +96,19 @@ def _build_block(
 
 
 def blocks_of(cells: Sequence[Cell], n_tasks: int) -> list[list[Cell]]:
-    """Square blocks of neighbouring cells, at least ``n_tasks`` of them when there are
-    enough cells, at most :data:`MAX_BLOCK_SIDE` cells on a side (cells in row-major order
-    within a block, blocks in row-major order)."""
-    side = max(1, min(MAX_BLOCK_SIDE, math.isqrt(max(1, len(cells) // max(1, n_tasks)))))
-    x0 = min((cell.index[0] for cell in cells), default=0)
-    y0 = min((cell.index[1] for cell in cells), default=0)
+    """Blocks of neighbouring cells: bands of whole rows (at most :data:`MAX_BLOCK_SIDE`
+    cells on a side), about ``n_tasks`` of them when there are enough rows; cells in
+    row-major order within a block, blocks in row-major order."""
+    if not cells:
+        return []
+    xs = sorted({cell.index[0] for cell in cells})
+    ys = sorted({cell.index[1] for cell in cells})
+    side_x = min(len(xs), MAX_BLOCK_SIDE)
+    per_band = -(-len(xs) // side_x)
+    side_y = min(MAX_BLOCK_SIDE, max(1, -(-len(ys) * per_band // max(1, n_tasks))))
     groups: dict[tuple[int, int], list[Cell]] = {}
     for cell in sorted(cells, key=lambda c: (c.index[1], c.index[0])):
-        key = ((cell.index[1] - y0) // side, (cell.index[0] - x0) // side)
+        key = ((cell.index[1] - ys[0]) // side_y, (cell.index[0] - xs[0]) // side_x)
         groups.setdefault(key, []).append(cell)
     return [groups[key] for key in sorted(groups)]
 
@@ -256,14 +259,18 @@ def _broken_or_pending(future: Future) -> bool:
     return not future.cancelled() and isinstance(future.exception(), BrokenExecutor)
 
 
-def _task_count(pool: Executor | None, client: Any, workers: int) -> int:
-    """How many blocks to cut a patch into: one in this process, else two per worker so
-    that blocks of unequal cost balance out (results do not depend on it)."""
+def _task_count(pool: Executor | None, client: Any, workers: int, sources: bool) -> int:
+    """How many blocks to cut a patch into: one in this process; else one per worker when
+    the inputs are sources (each block loads every exposure it needs once, at a fixed
+    cost of ~20 ms per file, so fewer, larger blocks), two per worker for in-memory
+    exposures (to balance blocks of unequal cost). Results do not depend on it."""
     if client is not None:
-        return 2 * max(1, sum(client.nthreads().values()))
-    if pool is None:
+        n_workers = max(1, sum(client.nthreads().values()))
+    elif pool is None:
         return 1
-    return 2 * max(1, int(getattr(pool, "_max_workers", workers)))
+    else:
+        n_workers = max(1, int(getattr(pool, "_max_workers", workers)))
+    return n_workers if sources else 2 * n_workers
 
 
 def build_patch(
@@ -364,7 +371,8 @@ def build_patch(
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
     by_index = {cell.index: indices for cell, indices in zip(cells, near, strict=True)}
     tasks: list[Task] = []
-    for block in blocks_of(cells, _task_count(pool, client, workers)):
+    sources = any(isinstance(item, DescribedSource) for item in inputs)
+    for block in blocks_of(cells, _task_count(pool, client, workers, sources)):
         indices = sorted({i for cell in block for i in by_index[cell.index]})
         tasks.append(
             (block, indices if owned or client is not None else [framed[i] for i in indices])

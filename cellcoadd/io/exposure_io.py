@@ -325,7 +325,8 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Expo
     ox, oy = _meta_origin(meta)
     return Exposure(
         image=image,
-        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start),
+        # Exposure puts the WCS in canonical form: no need to do it twice
+        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start, canonical=False),
         variance=variance,
         psf=read_psf(meta["psf"], psf_array),
         visit=int(meta["visit"]),
