@@ -134,7 +134,7 @@ def test_unsupported_cards_fall_back_to_cfitsio(tmp_path, monkeypatch):
         calls.append(1)
         raise fits_direct.UnsupportedCard("not today")
 
-    monkeypatch.setattr(fits_direct, "image_hdu", refuse)
+    monkeypatch.setattr(fits_direct, "image_header", refuse)
     path = tmp_path / "fallback.fits"
     api.write(patch, path)
     assert calls

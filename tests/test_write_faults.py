@@ -13,14 +13,13 @@ import types
 from pathlib import Path
 
 import fitsio
-import h5py
 import pytest
 from coadd_factory import MEDIUM, SMALL, make_patch, tiny_exposures, tiny_patch
 from exposure_factory import make_exposure
 from kill_writer import kill_mid_write
 
 from cellcoadd import Exposure
-from cellcoadd.io import api, exposure_io, fits_direct
+from cellcoadd.io import api, exposure_io, fits_direct, hdf5_chunks
 from cellcoadd.io.exposure_io import read_exposure, write_exposure
 
 TESTS = Path(__file__).parent
@@ -195,7 +194,7 @@ def test_writer_running_out_of_space(tmp_path, monkeypatch, exposure, name):
         api.write(make_patch(SMALL, seed=1), target)
         # uncompressed cells are written directly, compressed ones through CFITSIO
         owner, method = (
-            (h5py.Group, "create_dataset")
+            (hdf5_chunks.ObjectMaker, "dataset")
             if name.endswith("h5")
             else (fits_direct, "write_parts")
             if name.endswith(".fits")

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cellcoadd.io.disk_space import disk_full_error
+from cellcoadd.io.writeback import EarlyWriteback
 
 
 def exists_error(target: str | os.PathLike[str]) -> FileExistsError:
@@ -90,7 +91,9 @@ def atomic_write(
     ``overwrite`` is false, which fails if the target appeared meanwhile (so of two
     concurrent writers of a new file exactly one succeeds and an existing file is never
     replaced), and by ``os.replace`` otherwise. On any failure the temporary file is
-    removed and a previous file at ``target`` is left unchanged.
+    removed and a previous file at ``target`` is left unchanged. While ``write`` runs, the
+    disk is asked to start writing what it has written so far
+    (:class:`~cellcoadd.io.writeback.EarlyWriteback`), so the final flush waits for less.
 
     Parameters
     ----------
@@ -133,7 +136,8 @@ def atomic_write(
     if prepare is not None:
         prepare(temporary)
     try:
-        write(temporary)
+        with EarlyWriteback(temporary):  # the disk starts writing while write() computes
+            write(temporary)
         _fsync_file(temporary)
         _publish(temporary, target, overwrite=overwrite)
     except BaseException as err:

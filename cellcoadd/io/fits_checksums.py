@@ -177,20 +177,28 @@ def ones_complement_sum(data: bytes, initial: int = 0) -> int:
     return total
 
 
+def _encoded_byte(byte: int) -> tuple[int, int, int, int]:
+    """The four characters that encode one byte of a checksum (FITS checksum standard)."""
+    quotient, remainder = byte // 4 + 0x30, byte % 4
+    chars = [quotient + remainder, quotient, quotient, quotient]
+    # Shift pairs off punctuation; each pair keeps its sum, so the checksum holds.
+    while any(c in _CHECKSUM_EXCLUDED for c in chars):
+        for first in (0, 2):
+            if chars[first] in _CHECKSUM_EXCLUDED or chars[first + 1] in _CHECKSUM_EXCLUDED:
+                chars[first] += 1
+                chars[first + 1] -= 1
+    return chars[0], chars[1], chars[2], chars[3]
+
+
+_ENCODED_BYTES = [_encoded_byte(byte) for byte in range(256)]
+
+
 def encode_checksum(total: int) -> bytes:
     """16-character ASCII encoding of the complement of ``total`` (FITS checksum standard)."""
     value = 0xFFFFFFFF - total
     encoded = [0] * 16
     for byte_index in range(4):
-        byte = (value >> (24 - 8 * byte_index)) & 0xFF
-        quotient, remainder = byte // 4 + 0x30, byte % 4
-        chars = [quotient + remainder, quotient, quotient, quotient]
-        # Shift pairs off punctuation; each pair keeps its sum, so the checksum holds.
-        while any(c in _CHECKSUM_EXCLUDED for c in chars):
-            for first in (0, 2):
-                if chars[first] in _CHECKSUM_EXCLUDED or chars[first + 1] in _CHECKSUM_EXCLUDED:
-                    chars[first] += 1
-                    chars[first + 1] -= 1
+        chars = _ENCODED_BYTES[(value >> (24 - 8 * byte_index)) & 0xFF]
         for position in range(4):
             encoded[4 * position + byte_index] = chars[position]
     # The standard rotates the string one character to the right.

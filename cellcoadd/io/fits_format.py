@@ -139,7 +139,7 @@ def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -
         )
         fits[-1].write_checksum()
         if not direct:
-            hdus: _CfitsioHdus | _DirectHdus = _CfitsioHdus(fits, compress)
+            hdus: _CfitsioHdus | fits_direct.DirectHdus = _CfitsioHdus(fits, compress)
             for index in indices:
                 _write_cell(hdus, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
             # Readers check the length against it instead of walking every header to the end.
@@ -148,12 +148,11 @@ def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -
             fits[0].write_checksum()
             return
         head = [fits[number].get_offsets() for number in range(_FIRST_CELL_HDU)]
-    with open(path, "r+b") as stream:
-        stream.seek(head[-1]["data_end"])
-        writer = _DirectHdus(stream)
-        for index in indices:
-            _write_cell(writer, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
-        size = stream.tell()
+    writer = fits_direct.DirectHdus()
+    for index in indices:
+        _write_cell(writer, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
+    with open(path, "r+b", buffering=0) as stream:  # (p)writev: a cell in one system call
+        size = writer.write(stream, head[-1]["data_end"])
         stream.truncate(size)
         _finish_head(stream, head, size)
 
@@ -163,9 +162,8 @@ def _finish_head(stream: BinaryIO, head: list[dict[str, int]], size: int) -> Non
     checksum cards (as :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`)."""
     for number, extent in enumerate(head):
         start, data_start, end = extent["header_start"], extent["data_start"], extent["data_end"]
-        stream.seek(start)
-        header = bytearray(stream.read(data_start - start))
-        crc = zlib.crc32(stream.read(end - data_start))
+        header = bytearray(_read_at(stream, start, data_start - start))
+        crc = zlib.crc32(_read_at(stream, data_start, end - data_start))
         if number == 0:
             at = find_card(header, b"FILESIZE=")
             if at < 0:
@@ -174,7 +172,20 @@ def _finish_head(stream: BinaryIO, head: list[dict[str, int]], size: int) -> Non
         fill_datacrc(header, crc)
         stable_checksum_header(header)
         stream.seek(start)
-        stream.write(header)
+        fits_direct.write_parts(stream, [bytes(header)])
+
+
+def _read_at(stream: BinaryIO, offset: int, size: int) -> bytes:
+    """``size`` bytes of ``stream`` from ``offset`` (an unbuffered read may return fewer)."""
+    stream.seek(offset)
+    chunks = []
+    while size > 0:
+        chunk = stream.read(size)
+        if not chunk:
+            raise OSError(f"{getattr(stream, 'name', 'file')}: ends before byte {offset + size}")
+        chunks.append(chunk)
+        size -= len(chunk)
+    return b"".join(chunks)
 
 
 def _index_table(
@@ -217,23 +228,8 @@ class _CfitsioHdus:
         self.fits[-1].write_checksum()
 
 
-class _DirectHdus:
-    """Uncompressed cell HDUs appended to ``stream`` (:mod:`cellcoadd.io.fits_direct`)."""
-
-    def __init__(self, stream: BinaryIO) -> None:
-        self.stream = stream
-        self.scratch = fits_direct.Scratch()
-
-    def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
-        keys = [*keys, DATACRC_PLACEHOLDER]
-        fits_direct.write_image(self.stream, data, name, keys, self.scratch)
-
-    def table(self, table: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
-        fits_direct.write_table(self.stream, table, name, [*keys, DATACRC_PLACEHOLDER])
-
-
 def _write_cell(
-    hdus: _CfitsioHdus | _DirectHdus,
+    hdus: _CfitsioHdus | fits_direct.DirectHdus,
     cell: CellCoadd,
     *,
     plane_cards: dict[str, list[tuple[str, object, str]]] | None = None,

@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import json
 import re
-from typing import Any
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, NamedTuple
 
 import h5py
 import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import format_version
+from cellcoadd.io import format_version, parallel
 from cellcoadd.io.cell_records import (
     WcsRecords,
     cell_record_json,
@@ -37,6 +40,7 @@ from cellcoadd.io.format_version import (
     decode_metadata,
     sha256_hex,
 )
+from cellcoadd.io.hdf5_chunks import Attribute, ChunkScratch, Member, ObjectMaker
 from cellcoadd.io.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.io.read_checks import check_path_readable, reading_errors
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -69,26 +73,128 @@ def group_name(index: tuple[int, int]) -> str:
 
 
 def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
-    """Write ``patch`` to a new HDF5 file at ``path``."""
+    """Write ``patch`` to a new HDF5 file at ``path``.
+
+    Objects are made through h5py's low-level API, each uncompressed chunk written as
+    HDF5 stores it (:mod:`cellcoadd.io.hdf5_chunks`). What the next cells need (chunk
+    copies with their Fletcher-32, inputs tables, identity records) is made in a worker
+    thread while this one makes the objects and writes (:class:`_PreparedCells`); HDF5
+    itself is only called from this thread, in the same order whatever the timing, so the
+    file's bytes do not depend on it.
+    """
     # looked up on the module at each write, so tests can stand in for it
     payload, version = format_version.metadata_payload(patch.metadata)
-    with h5py.File(path, "w", libver=_LIBVER) as h5:
+    cells = list(patch.cells.values())
+    with (
+        ObjectMaker(compress, _LIBVER) as maker,
+        h5py.File(path, "w", libver=_LIBVER) as h5,
+        _PreparedCells(cells, compress) as prepared,
+    ):
         # Fixed-length byte strings are stored inside the (checksummed) object header.
-        h5.attrs["cellcoadd_format"] = np.bytes_(FILE_KIND)
-        h5.attrs["format_version"] = np.bytes_(version)
-        h5.attrs["metadata_sha256"] = np.bytes_(sha256_hex(payload))
-        # the set of cells and planes, bound to the metadata by one digest (format 1.2)
         contents = contents_json(list(patch.cells)).encode("ascii")
-        h5.attrs["contents"] = np.bytes_(contents)
-        h5.attrs["contents_sha256"] = np.bytes_(sha256_hex(payload + contents))
-        _write_dataset(h5, "metadata", np.frombuffer(payload, dtype=np.uint8), compress=compress)
-        cells = h5.create_group("cells")
-        plane_attrs = patch.metadata.unit_cards()
-        wcs_records = WcsRecords()
-        for cell in patch.cells.values():
-            _write_cell(
-                cells, cell, compress=compress, plane_attrs=plane_attrs, records=wcs_records
-            )
+        root = [
+            ("cellcoadd_format", FILE_KIND),
+            ("format_version", version),
+            ("metadata_sha256", sha256_hex(payload)),
+            # the set of cells and planes, bound to the metadata by one digest (format 1.2)
+            ("contents", contents.decode("ascii")),
+            ("contents_sha256", sha256_hex(payload + contents)),
+        ]
+        maker.attributes(h5.id, root)
+        maker.dataset(h5.id, "metadata", np.frombuffer(payload, dtype=np.uint8))
+        writer = _CellWriter(maker, maker.group(h5.id, "cells"), patch.metadata.unit_cards())
+        for cell, made in zip(cells, prepared, strict=True):
+            _write_cell(writer, cell, made)
+
+
+#: Cells prepared together, and batches prepared ahead of the one written (the buffers
+#: hold (_AHEAD + 2) * _BATCH cells: about 42 MB for LSST-default cells with K = 3).
+_BATCH = 8
+_AHEAD = 1
+
+
+class _Prepared(NamedTuple):
+    """What writing a cell needs, made ahead (:func:`_prepare_batch`)."""
+
+    #: Stored chunks of the non-empty planes and inputs (empty when compressed).
+    chunks: dict[str, memoryview]
+    #: The inputs table.
+    inputs: np.ndarray
+    #: The identity record (ASCII JSON).
+    record: bytes
+
+
+class _PreparedCells:
+    """:class:`_Prepared` of the cells, cell after cell, made :data:`_BATCH` cells at a
+    time, :data:`_AHEAD` batches ahead, in a worker thread when
+    :data:`~cellcoadd.io.parallel.THREADS` allows and the file is uncompressed (the
+    copies and :func:`~cellcoadd.io.hdf5_chunks.fletcher32_rows` release the GIL). A
+    batch's buffers are reused once its cells are written. Use as a context manager:
+    leaving it stops the worker before the buffers go."""
+
+    def __init__(self, cells: list[CellCoadd], compress: bool) -> None:
+        self.cells = cells
+        self.compress = compress
+        self.records = WcsRecords()  # used by one thread at a time
+        self._slots: list[_Slot] = [{} for _ in range(_AHEAD + 2)]
+        self._executor: ThreadPoolExecutor | None = None
+
+    def __enter__(self) -> _PreparedCells:
+        if parallel.THREADS > 1 and not self.compress:
+            self._executor = ThreadPoolExecutor(1, thread_name_prefix="cellcoadd-hdf5")
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def __iter__(self) -> Iterator[_Prepared]:
+        # small first batches: writing starts as soon as the first cell is ready
+        batches, start, size = [], 0, 1
+        while start < len(self.cells):
+            batches.append(self.cells[start : start + size])
+            start, size = start + size, min(2 * size, _BATCH)
+        pending: deque[Future[list[_Prepared]]] = deque()
+        for number in range(len(batches)):
+            while len(pending) <= _AHEAD and number + len(pending) < len(batches):
+                ahead = number + len(pending)
+                pending.append(self._submit(batches[ahead], self._slots[ahead % len(self._slots)]))
+            yield from pending.popleft().result()
+
+    def _submit(self, batch: list[CellCoadd], slot: _Slot) -> Future[list[_Prepared]]:
+        if self._executor is not None:
+            return self._executor.submit(_prepare_batch, batch, slot, self)
+        done: Future[list[_Prepared]] = Future()
+        done.set_result(_prepare_batch(batch, slot, self))
+        return done
+
+
+#: Reusable chunk buffers of a batch, by dataset (and cell number when sizes differ).
+_Slot = dict[tuple[str, int], ChunkScratch]
+
+
+def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -> list[_Prepared]:
+    """What writing the cells of ``batch`` needs: their inputs tables, identity records and
+    (uncompressed) the stored chunks of their non-empty datasets, made together by name."""
+    inputs = [inputs_to_array(cell.inputs, ascii_only=False) for cell in batch]
+    records = [cell_record_json(cell, cells.records).encode("ascii") for cell in batch]
+    chunks: list[dict[str, memoryview]] = [{} for _ in batch]
+    for name in () if cells.compress else (*_DTYPES, "inputs"):
+        arrays = inputs if name == "inputs" else [_stored_plane(cell, name) for cell in batch]
+        sizes = {array.nbytes for array in arrays}
+        if sizes == {0}:
+            continue
+        groups = [(-1, arrays)] if len(sizes) == 1 else list(enumerate([a] for a in arrays))
+        for key, group in groups:  # the cells' planes share a size: made all at once
+            scratch = slot.get((name, key))
+            if scratch is None:
+                scratch = slot[(name, key)] = ChunkScratch()
+            numbers = range(len(batch)) if key < 0 else [key]
+            for number, chunk in zip(numbers, scratch.chunks(group), strict=True):
+                if len(chunk) > 4:  # not an empty dataset
+                    chunks[number][name] = chunk
+    return [_Prepared(*made) for made in zip(chunks, inputs, records, strict=True)]
 
 
 def contents_json(indices: list[tuple[int, int]]) -> str:
@@ -100,43 +206,49 @@ def contents_json(indices: list[tuple[int, int]]) -> str:
     )
 
 
-def _write_cell(
-    cells: h5py.Group,
-    cell: CellCoadd,
-    *,
-    compress: bool,
-    plane_attrs: dict[str, list[tuple[str, object, str]]] | None = None,
-    records: WcsRecords | None = None,
-) -> None:
-    group = cells.create_group(group_name(cell.index))
-    record = cell_record_json(cell, records).encode("ascii")
-    group.attrs["cell"] = np.bytes_(record)
-    group.attrs["cell_sha256"] = np.bytes_(sha256_hex(record))
-    # Each dataset is closed (its chunk written) before the next is made, and attributes
-    # come last: this order decides where HDF5 puts things, hence the file's bytes.
-    for plane, dtype in _DTYPES.items():
-        _write_dataset(group, plane, getattr(cell, plane).astype(dtype, copy=False), compress)
-    _write_dataset(group, "inputs", inputs_to_array(cell.inputs, ascii_only=False), compress)
-    for name in (*_DTYPES, "inputs"):
+def _stored_plane(cell: CellCoadd, plane: str) -> np.ndarray:
+    """A plane of ``cell`` as stored: C-contiguous, little-endian, the plane's dtype."""
+    return np.ascontiguousarray(getattr(cell, plane), dtype=_DTYPES[plane])
+
+
+class _CellWriter:
+    """What the cell groups of one file share."""
+
+    def __init__(
+        self,
+        maker: ObjectMaker,
+        cells: h5py.h5g.GroupID,
+        plane_attrs: dict[str, list[tuple[str, object, str]]],
+    ) -> None:
+        self.maker = maker
+        self.cells = cells
+        # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask, as in FITS
+        self.plane_attrs = plane_attrs
+
+
+def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> None:
+    """The group of a cell: its planes with their attributes, the inputs, then the
+    identity attributes (chunks, inputs table and record as ``prepared``)."""
+    maker = writer.maker
+    members: list[Member] = []
+    for plane in _DTYPES:
         # planes share shape and dtype: the name travels with the data so that a moved or
         # swapped dataset is refused rather than read as another plane
-        group[name].attrs["plane"] = np.bytes_(name)
-    # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask, as in FITS
-    for plane, attrs in (plane_attrs or {}).items():
-        for key, value, _ in attrs:
-            group[plane].attrs[key] = np.bytes_(value) if isinstance(value, str) else value
-
-
-def _write_dataset(group: h5py.Group, name: str, data: np.ndarray, compress: bool) -> None:
-    if data.size == 0:
-        # Chunks cannot be empty, and there is nothing to checksum.
-        group.create_dataset(name, data=data)
-        return
-    options: dict[str, Any] = {"chunks": data.shape, "fletcher32": True}
-    if compress:
-        # Level 1: noise-dominated float planes gain < 1% from higher levels at twice the time.
-        options.update(compression="gzip", compression_opts=1, shuffle=True)
-    group.create_dataset(name, data=data, **options)
+        attributes: list[Attribute] = [("plane", plane)]
+        attributes += [(key, value) for key, value, _ in writer.plane_attrs.get(plane, [])]
+        members.append((plane, _stored_plane(cell, plane), attributes, prepared.chunks.get(plane)))
+    # one copy of a template group (its datasets and their attributes), then the chunks
+    group = maker.group_of(writer.cells, group_name(cell.index), members)
+    maker.dataset(
+        group,
+        "inputs",
+        prepared.inputs,
+        [("plane", "inputs")],
+        repeated=True,
+        chunk=prepared.chunks.get("inputs"),
+    )
+    record = prepared.record
+    maker.attributes(group, [("cell", record.decode("ascii")), ("cell_sha256", sha256_hex(record))])
 
 
 class Hdf5CoaddFile(CoaddFile):

@@ -151,8 +151,12 @@ def wcs_to_record(
         or (wcs.det2im2 is not None)
     ):
         raise ValueError("WCS lookup-table distortions (CPDIS/DET2IM) cannot be stored")
-    header = wcs_header(wcs)
     exact = wcs_exact_parameters(wcs)
+    if card_values is not None:
+        fast = _wcslib_cards(wcs, card_values)
+        if fast is not None:
+            return {"header": fast, "exact": exact}
+    header = wcs_header(wcs)
     if card_values is None:
         return {"header": [[card.keyword, card.value] for card in header.cards], "exact": exact}
     cards = []
@@ -166,6 +170,40 @@ def wcs_to_record(
             parsed = card_values[image] = (card.keyword, card.value)
         cards.append(list(parsed))
     return {"header": cards, "exact": exact}
+
+
+#: The ``relax`` flags ``WCS.to_header(relax=True)`` gives wcslib (all extensions, 14 digits).
+_TO_HEADER_FLAGS = 0xFF | 0x4000  # WCSHDO_all | WCSHDO_P14
+#: Keywords ``WCS.to_header`` removes from wcslib's header.
+_DROPPED_KEYWORDS = frozenset(("", "COMMENT"))
+
+
+def _wcslib_cards(wcs: WCS, card_values: dict[str, tuple[str, Any]]) -> list[list[Any]] | None:
+    """The ``[keyword, value]`` cards of :func:`wcs_header` for a WCS without SIP, from
+    wcslib's header text, each distinct card parsed once (``card_values``, by its text).
+
+    Without SIP, ``WCS.to_header(relax=True)`` is wcslib's header (``relax`` = all
+    extensions, 14 digits) parsed by astropy, without its blank and COMMENT cards; parsing
+    that header again for every cell cost more than the rest of describing its WCS.
+    None (use :func:`wcs_header`) for a WCS with SIP, which astropy edits further.
+    """
+    if wcs.sip is not None or wcs.wcs is None:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FITSFixedWarning)
+        text = wcs.wcs.to_header(_TO_HEADER_FLAGS)
+    cards: list[list[Any]] = []
+    for start in range(0, len(text), 80):
+        image = text[start : start + 80]
+        parsed = card_values.get(image)
+        if parsed is None:
+            if image.rstrip() == "END":
+                break
+            card = fits.Card.fromstring(image)
+            parsed = card_values[image] = (card.keyword, card.value)
+        if parsed[0] not in _DROPPED_KEYWORDS:
+            cards.append(list(parsed))
+    return cards
 
 
 def wcs_from_record(record: dict[str, Any]) -> WCS:
