@@ -1,11 +1,14 @@
 """BFD (paper section 4.1): moments, covariance, shear derivatives, P/Q/R, selection, shear."""
 
+import dataclasses
+
 import galsim
 import numpy as np
 import pytest
 
+from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE
 from cellcoadd.shear import bfd
-from cellcoadd.shear.bfd_prior import _inverse_shear
+from cellcoadd.shear.bfd_prior import _half_plane, _inverse_shear
 
 SCALE = 0.2
 # u West: du/dx < 0; a rotated, slightly sheared pixel grid tests the jacobian handling.
@@ -256,6 +259,28 @@ def test_pqr_match_finite_differences_of_p(small_setup):
     np.testing.assert_array_equal(res.R[:, 0, 1], res.R[:, 1, 0])
 
 
+def test_prior_from_half_the_samples_is_the_full_sum(small_setup):
+    """The prior keeps one of each pair ``k, -k`` (twice its value): the same copies'
+    moments as the full sums, which an unpaired zero-valued sample forces."""
+    templates, ref = small_setup
+
+    def unpaired(data):
+        return dataclasses.replace(
+            data, kx=np.append(data.kx, 0.123), ky=np.append(data.ky, 0.456),
+            values=np.append(data.values, 0.0),
+        )  # fmt: skip
+
+    assert 2 * _half_plane(templates[0]).kx.size == templates[0].kx.size + 1  # k = 0 once
+    assert _half_plane(unpaired(templates[0])).kx.size == templates[0].kx.size + 1
+    kw = dict(cov_even=ref.cov_even, cov_odd=ref.cov_odd, n_rotations=3)
+    half = bfd.TemplatePrior.from_templates(templates[:3], **kw)
+    full = bfd.TemplatePrior.from_templates([unpaired(t) for t in templates[:3]], **kw)
+    scale = np.abs(full.moments).max(axis=0)
+    np.testing.assert_allclose(half.moments / scale, full.moments / scale, atol=1e-12)
+    np.testing.assert_allclose(half.weights, full.weights, rtol=1e-12)
+    np.testing.assert_allclose(half.centred, full.centred, rtol=1e-10, atol=1e-12)
+
+
 def test_selection_term_matches_finite_differences(small_setup):
     templates, ref = small_setup
     # Bounds in the middle of the templates' fluxes, so the selection bites.
@@ -346,11 +371,63 @@ def test_oversampling_makes_shear_derivatives_of_small_galaxies_exact():
     """The moments are Riemann sums on the FFT grid: 48 x 0.27 arcsec puts only 5.8 grid
     steps inside kmax (sigma = 1 arcsec). For a galaxy of half-light radius 0.1 arcsec the
     analytic shear derivative of E1 (a near-cancellation of two terms) then misses the
-    sheared galaxy's change by ~40%; 4-fold zero padding brings it to 2e-3 (what remains
-    is the truncation of the PSF wings by the 48-pixel stamp: drawn on 192 pixels, 3e-5)."""
+    sheared galaxy's change by ~40%; the validation's default zero padding (4-fold) brings
+    it to 2e-3 (what remains is the truncation of the PSF wings by the 48-pixel stamp:
+    drawn on 192 pixels, 3e-5)."""
+    assert BFD_OVERSAMPLE == 4
     assert abs(_shear_response_ratio(0.1, 1) - 1.0) > 0.2
-    assert abs(_shear_response_ratio(0.1, 4) - 1.0) < 3e-3
-    assert abs(_shear_response_ratio(0.4, 4) - 1.0) < 1e-3
+    assert abs(_shear_response_ratio(0.1, BFD_OVERSAMPLE) - 1.0) < 3e-3
+    assert abs(_shear_response_ratio(0.4, BFD_OVERSAMPLE) - 1.0) < 1e-3
+
+
+def _sheared_template(g: tuple[float, float], oversample: int) -> bfd.KData:
+    """A 0.15 arcsec exponential (e = 0.1, -0.05) sheared by ``g`` through GalSim, on a
+    48-pixel stamp of 0.27 arcsec with the validation's Moffat PSF, S/N ~ 30."""
+    jac = np.array([[-0.27, 0.0], [0.0, 0.27]])
+    wcs = galsim.JacobianWCS(*jac.ravel())
+    psf = galsim.Moffat(beta=3.5, fwhm=0.95)
+    psf_img = psf.drawImage(nx=35, ny=35, wcs=wcs).array
+    galaxy = galsim.Exponential(half_light_radius=0.15).shear(e1=0.1, e2=-0.05)
+    img = galsim.Convolve(galaxy.shear(g1=g[0], g2=g[1]), psf).drawImage(
+        nx=48, ny=48, wcs=wcs, dtype=np.float64
+    )
+    variance = (0.08 * img.array.max()) ** 2
+    return bfd.fourier_data(img.array, psf_img, jac, noise_variance=variance, oversample=oversample)
+
+
+def _pqr_against_sheared_templates(oversample: int) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic Q1, Q2 and R11 of a one-template prior over finite differences of P whose
+    template is *actually* sheared (drawn sheared by GalSim), for three targets 1 sigma
+    from it: the check of the moments' shear derivatives that matters to BFD."""
+    ref = bfd.measure_moments(_sheared_template((0.0, 0.0), oversample))
+    kw = dict(cov_even=ref.cov_even, cov_odd=ref.cov_odd, n_rotations=1, snr_range=None)
+    sigma = np.sqrt(np.diag(ref.cov_even))
+    targets = ref.even + sigma * np.array([[0, 0, 1, 0], [0, 0, 0, -1], [0.5, 0, -0.7, 0.5]])
+    res = bfd.TemplatePrior.from_templates([_sheared_template((0.0, 0.0), oversample)], **kw)
+    res = res.pqr(targets)
+    scale = np.exp(res.log_scale)
+
+    def p(g):
+        prior = bfd.TemplatePrior.from_templates([_sheared_template(g, oversample)], **kw)
+        return _true_p(prior, targets)
+
+    h = 1e-3  # |d ln P / dg| ~ 30 at S/N 30: the finite differences are good to ~1e-4
+    q1 = (p((h, 0.0)) - p((-h, 0.0))) / (2 * h)
+    q2 = (p((0.0, h)) - p((0.0, -h))) / (2 * h)
+    r11 = (p((2 * h, 0.0)) - 2 * res.P * scale + p((-2 * h, 0.0))) / (2 * h) ** 2
+    q_ratio = np.concatenate([res.Q[:, 0] * scale / q1, res.Q[:, 1] * scale / q2])
+    return q_ratio, res.R[:2, 0, 0] * scale[:2] / r11[:2]
+
+
+def test_q_and_r_match_finite_differences_of_p_with_sheared_templates():
+    """Q and R against P of templates GalSim actually sheared: right at the validation's
+    default oversampling, wrong on the stamp's own FFT grid (measured: Q to 4e-4 and R11
+    to 1.2e-3 at 4-fold; at 1-fold Q off by 12%, R11 by 18% and 69%)."""
+    q_ratio, r_ratio = _pqr_against_sheared_templates(BFD_OVERSAMPLE)
+    np.testing.assert_allclose(q_ratio, 1.0, atol=1e-3)
+    np.testing.assert_allclose(r_ratio, 1.0, atol=5e-3)
+    q_ratio, r_ratio = _pqr_against_sheared_templates(1)
+    assert np.max(np.abs(q_ratio - 1.0)) > 0.05 and np.max(np.abs(r_ratio - 1.0)) > 0.1
 
 
 def test_oversampled_covariance_matches_monte_carlo():

@@ -42,7 +42,7 @@ SHRINK = {
 EXTRA = {
     "demo": ["--visits", "1", "--workers", "1", "--quiet"],
     "simulate": ["--visits", "1", "--objects", "2", "--quiet"],
-    "validate-shear": ["--n-objects", "4", "--quiet"],
+    "validate-shear": ["--n-objects", "4", "--bfd-templates", "10", "--quiet"],
     "analyze rejection": ["--n-cells", "40", "--n-visits", "4"],
     "analyze snr-loss": ["--trials", "20"],
 }

@@ -139,10 +139,9 @@ def test_bfd_epoch_sum_is_the_sum_of_the_epochs():
     geometry = EpochGeometry.of(obj, 35)
     total = bfd.measure_moments(bfd_epoch_sum(SETTINGS, obj.exposures, geometry, 1.0))
     weight = bfd.KSigmaWeight(sigma=SETTINGS.bfd_sigma)
+    kw = {"noise_variance": 1.0, "weight": weight, "oversample": SETTINGS.bfd_oversample}
     each = [
-        bfd.measure_moments(
-            bfd.fourier_data(e.image, psf, jac, noise_variance=1.0, weight=weight, centre=c)
-        )
+        bfd.measure_moments(bfd.fourier_data(e.image, psf, jac, centre=c, **kw))
         for e, psf, jac, c in zip(
             obj.exposures, geometry.psfs, geometry.jacobians, geometry.centres, strict=True
         )
@@ -221,8 +220,7 @@ def test_multi_epoch_bfd_at_high_snr():
     # measured: m1 = +3e-5 +- 3.9e-4 (seed 5)
     result = validate_shear(
         "multi-epoch", n_objects=16, snr=HIGH_SNR, seed=5, workers=2, progress=False,
-        method="bfd", bfd_template_sample="targets", bfd_oversample=4,
-        rotated_partners=False, sim=SimConfig(shear=(1.0e-3, 0.0)),
+        method="bfd", bfd_template_sample="targets", rotated_partners=False, shear=1.0e-3,
     )  # fmt: skip
     assert result["n_used"] == 16 and result["incomplete_coadds"] == 0
     assert abs(result["m1"]) < 2e-3 and abs(result["m1"]) < 3.0 * result["m1_err"]

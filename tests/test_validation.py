@@ -21,7 +21,7 @@ from cellcoadd.pipelines import (
 )
 from cellcoadd.pipelines.shear_validation import RESULT_KEYS, PairCatalogue, measure_pairs
 from cellcoadd.pipelines.stamp_pairs import measure_pair
-from cellcoadd.pipelines.validation_settings import stamp_cell
+from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
 # Nearly noise free: the metacal error per object is ~1.5e-3 / (S/N / 1e4) in m, so a
@@ -237,17 +237,17 @@ def test_bfd_coadd_bias_is_small_at_high_snr():
     coadd's moments under shear, through the P, Q, R assembly, the centring and position
     integral, the covariance from the coadd noise realization and the paired estimator.
     g = 1e-3 keeps third-order terms out (at g = 0.02: +1.3e-3 +- 6e-4). It found that on
-    the cell's own FFT grid those derivatives are wrong for small galaxies (m1 = -0.023 +-
-    0.015; bfd_oversample=4 zero-pads to fix it). Not checked: a prior sampled by
-    independent templates and the selection (no S/N cut at this S/N): the slow test below.
-    Measured: m1 = +6.1e-4 +- 4.0e-4 (seed 3; seeds 4, 5: +3.2e-4 +- 5.6e-4, +9.0e-4 +-
-    4.3e-4).
+    the cell's own FFT grid those derivatives are wrong for small galaxies (32 pairs:
+    m1 = -0.027 +- 0.009); the default bfd_oversample (4) zero-pads to fix it. Not checked:
+    a prior sampled by independent templates and the selection (no S/N cut at this S/N):
+    the slow test below. Measured: m1 = +6.1e-4 +- 4.0e-4 (seed 3, 16 pairs).
     """
     result = validate_shear(
         "coadd", n_objects=16, snr=HIGH_SNR, seed=3, workers=2, progress=False,
-        method="bfd", bfd_template_sample="targets", bfd_oversample=4,
-        rotated_partners=False, sim=SimConfig(shear=(1.0e-3, 0.0)),
+        method="bfd", bfd_template_sample="targets", rotated_partners=False, shear=1.0e-3,
     )  # fmt: skip
+    assert result["settings"]["bfd_oversample"] == BFD_OVERSAMPLE == 4
+    assert result["settings"]["sim"]["shear"] == [1.0e-3, 0.0]
     assert result["n_used"] == 16 and result["n_templates"] == 16
     assert result["incomplete_coadds"] == 0 and result["flux_snr_median"] > 1000
     assert abs(result["m1"]) < 2e-3 and result["m1_err"] < 1e-3
@@ -272,6 +272,25 @@ def test_bfd_coadd_bias_is_consistent_with_zero():
     assert abs(result["m1"]) < 3.0 * result["m1_err"] and result["m1_err"] < 0.5
     for name in ("c1", "c2"):
         assert abs(result[name]) < 3.0 * result[f"{name}_err"]
+
+
+def test_cli_defaults_are_the_settings_defaults():
+    defaults = {param.name: param.default for param in validate_shear_command.params}
+    assert defaults["bfd_oversample"] == ValidationSettings().bfd_oversample == BFD_OVERSAMPLE
+    assert defaults["shear"] == ValidationSettings().sim.shear[0] == 0.02
+
+
+def test_cli_shear_sets_the_input_shear():
+    args = ["--shear", "0.005", "--n-objects", "2", "--snr", "10000", "--json", "--quiet"]
+    result = CliRunner().invoke(validate_shear_command, args)
+    assert result.exit_code == 0, result.output
+    output = json.loads(result.output)
+    assert output["settings"]["sim"]["shear"] == [0.005, 0.0]
+    assert abs(output["m1"]) < 0.05  # measured against 0.005, not 0.02 (that gives -0.75)
+    table = CliRunner().invoke(validate_shear_command, args[:-2] + ["--quiet"])
+    assert table.exit_code == 0 and "g_true = 0.005" in table.output
+    refused = CliRunner().invoke(validate_shear_command, ["--shear", "0"])
+    assert refused.exit_code != 0 and "must not be 0" in refused.output
 
 
 def test_cli_refuses_shape_with_bfd():

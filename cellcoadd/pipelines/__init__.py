@@ -5,7 +5,10 @@
   into cells and measured (or measured on the epochs themselves:
   :mod:`cellcoadd.pipelines.epoch_measurements`);
 * :mod:`cellcoadd.pipelines.shear_validation`: the shear-bias validation over many pairs
-  (``cellcoadd validate-shear``).
+  (``cellcoadd validate-shear``; BFD's and AnaCal's summaries in
+  :mod:`~cellcoadd.pipelines.bfd_validation` and :mod:`~cellcoadd.pipelines.anacal_validation`,
+  the per-row presets of ``benchmarks/shear_bias.py`` in
+  :mod:`~cellcoadd.pipelines.bias_presets`).
 
 The names below are imported from their modules on first use, so that importing one
 pipeline module (say :mod:`cellcoadd.pipelines.simulation_files` for ``cellcoadd

@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
+from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
     M_REQUIREMENT,
     PAPER_LABELS,
@@ -41,20 +42,15 @@ from cellcoadd.pipelines.bias_table import (
     format_bias_table,
     paper_value,
 )
-from cellcoadd.pipelines.stamp_pairs import (
-    PairMeasurement,
-    bfd_noise_sigma,
-    bfd_templates,
-    measure_pair,
-)
+from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
 from cellcoadd.pipelines.validation_settings import (
+    BFD_OVERSAMPLE,
     Method,
     Mode,
     ValidationSettings,
     check_method_mode,
     stamp_cell,
 )
-from cellcoadd.shear import bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
 from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
@@ -217,7 +213,9 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     if len(catalogue) < 2:
         raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
     if settings.method == "bfd":
-        return _summarize_bfd(settings, catalogue)
+        return summarize_bfd(
+            settings, catalogue, _group(settings, catalogue), expected_inputs(settings)
+        )
     if settings.method == "anacal":
         return summarize_anacal(settings, catalogue, _group(settings, catalogue))
     plus, minus = catalogue.plus, catalogue.minus
@@ -268,60 +266,6 @@ def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> int:
     return 2 if paired else 1
 
 
-def _summarize_bfd(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
-    """BFD: the template prior for the targets' mean moment covariance, then ``m, c``."""
-    plus, minus = catalogue.plus["bfd"], catalogue.minus["bfd"]
-    good = (plus["flags"] == 0) & (minus["flags"] == 0)
-    if not np.any(good):
-        raise ValueError("no BFD target could be measured")
-    cov_even = np.mean(np.concatenate([plus["cov_even"][good], minus["cov_even"][good]]), axis=0)
-    cov_odd = np.mean(np.concatenate([plus["cov_odd"][good], minus["cov_odd"][good]]), axis=0)
-    start = time.process_time()
-    templates = bfd_templates(settings, bfd_noise_sigma(settings), catalogue.index.tolist())
-    # templates that are the targets themselves already have the targets' orientations
-    rotations = 1 if settings.bfd_template_sample == "targets" else 8
-    prior = bfd.TemplatePrior.from_templates(
-        templates, cov_even, cov_odd, n_rotations=rotations, snr_range=settings.bfd_snr_range
-    )
-    pqrs = []
-    for member in (plus, minus):
-        pqr = prior.pqr(member["even"])
-        ok = member["flags"] == 0
-        pqrs.append(
-            bfd.Pqr(
-                P=np.where(ok, pqr.P, 0.0),
-                Q=pqr.Q,
-                R=pqr.R,
-                log_scale=pqr.log_scale,
-                selected=pqr.selected & ok,
-            )
-        )
-    bias = bfd.paired_bias(
-        pqrs[0], pqrs[1], prior, true_g=settings.sim.shear[0], group=_group(settings, catalogue)
-    )
-    prior_cpu = time.process_time() - start
-    sel_plus, sel_minus = pqrs[0].selected, pqrs[1].selected
-    paper = paper_value("bfd", settings.mode)
-    return {
-        **bias,
-        "n_objects": len(catalogue),
-        "n_used": int(np.sum(sel_plus & sel_minus)),
-        "n_used_plus": int(sel_plus.sum()),
-        "n_used_minus": int(sel_minus.sum()),
-        "cpu_seconds": float(catalogue.cpu_seconds.sum()) + prior_cpu,
-        "prior_cpu_seconds": prior_cpu,
-        "mode": settings.mode,
-        "method": "bfd",
-        "settings": settings.model_dump(mode="json"),
-        "n_templates": len(templates),
-        "flux_snr_median": float(np.median(plus["snr"][good])),
-        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs(settings))),
-        "paper_m1": paper[0],
-        "paper_m1_err": paper[1],
-    }
-
-
 def validate_shear(
     mode: Mode = "coadd",
     n_objects: int = 200,
@@ -335,6 +279,7 @@ def validate_shear(
     scheduler: object | None = None,
     chunk_size: int | None = None,
     sim: SimConfig | None = None,
+    shear: float | None = None,
     coadd_pixel_scale: float = 0.2,
     reconvolution_psf: ReconvolutionKind = "gauss",
     return_measurements: bool = False,
@@ -344,7 +289,7 @@ def validate_shear(
     rotated_partners: bool = True,
     bfd_templates: int = 100,
     bfd_template_sample: Literal["independent", "targets"] = "independent",
-    bfd_oversample: int = 1,
+    bfd_oversample: int = BFD_OVERSAMPLE,
 ) -> dict[str, Any]:
     """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
@@ -379,6 +324,10 @@ def validate_shear(
         Objects per task (default: a few tasks per worker, at most 25 objects).
     sim : SimConfig, optional
         Simulation settings (default: the paper's, :class:`~cellcoadd.sim.SimConfig`).
+    shear : float, optional
+        Input shear ``g1`` of the pairs (``g2 = 0``), replacing ``sim.shear`` (default
+        0.02, the paper's); ``m1`` is measured against it. BFD's high-S/N check takes
+        1e-3 (docs/validation.md).
     coadd_pixel_scale : float
         Coadd pixel scale, arcsec (0.2, the LSST-like default of cellcoadd; 0.27 puts
         the coadd on the exposures' nominal scale); the cell size follows
@@ -403,8 +352,10 @@ def validate_shear(
         BFD templates from an independent sample, or the targets themselves unsheared
         (the high-S/N check; see :class:`~cellcoadd.pipelines.ValidationSettings`).
     bfd_oversample : int
-        k-space oversampling of the BFD moments (1: the stamp's FFT grid; 4: accurate
-        shear derivatives for small galaxies, see ``docs/validation.md``).
+        k-space oversampling of the BFD moments (default
+        :data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`, 4: accurate
+        shear derivatives for small galaxies; 1, the stamp's own FFT grid, biases m1 by
+        a few per cent; see ``docs/validation.md``).
 
     Returns
     -------
@@ -426,13 +377,16 @@ def validate_shear(
     if n_objects < 2:
         raise ValueError(f"a bias needs at least 2 objects, got n_objects = {n_objects}")
     check_method_mode(method, mode, reconvolution_psf)
+    sim = sim or SimConfig()
+    if shear is not None:
+        sim = SimConfig.model_validate({**sim.model_dump(), "shear": (shear, 0.0)})
     settings = ValidationSettings(
         mode=mode,
         seed=seed,
         snr=snr,
         step=step,
         reconvolution_psf=reconvolution_psf,
-        sim=sim or SimConfig(),
+        sim=sim,
         coadd_pixel_scale=coadd_pixel_scale,
         method=method,
         shape=shape,

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,7 +51,14 @@ from cellcoadd.shear.bfd_moments import (
 )
 from cellcoadd.shear.response import paired_shear_bias
 
-__all__ = ["Pqr", "TemplatePrior", "estimate_shear", "paired_bias"]
+__all__ = [
+    "Pqr",
+    "TemplatePrior",
+    "bias_from_sums",
+    "estimate_shear",
+    "paired_bias",
+    "paired_terms",
+]
 
 _PAIRS = ((0, 0), (0, 1), (1, 1))  # (j, l) of the second-derivative terms 3, 4, 5
 #: Copies whose chi^2 exceeds the best one's by more than this (a relative weight below
@@ -74,6 +81,67 @@ def _inverse_shear(g: tuple[float, float]) -> np.ndarray:
     if gsq >= 1.0:
         raise BfdError(f"|g| must be < 1, got {g}")
     return np.array([[1.0 - g1, -g2], [-g2, 1.0 + g1]]) / np.sqrt(1.0 - gsq)
+
+
+def _half_plane(data: KData) -> KData:
+    """The samples with ``k_u > 0`` (or ``k_u = 0 < k_v``) at twice their value, and
+    ``k = 0``: the same real parts of every moment sum, from half the samples.
+
+    The samples of a real image come in pairs ``k, -k`` with conjugate values, and every
+    moment coefficient and its shear derivatives satisfy ``f(-k) = conj(f(k))`` (even
+    moments: real even polynomials; odd ones: ``i`` times odd ones), as do the position
+    phases; so ``Re sum_k f v = Re sum_half 2 f v (+ the k = 0 term)``. ``data`` is
+    returned unchanged when its wavenumbers are not symmetric.
+    """
+    kx, ky = data.kx, data.ky
+    half = (kx > 0.0) | ((kx == 0.0) & (ky > 0.0))
+    origin = (kx == 0.0) & (ky == 0.0)
+    if 2 * int(half.sum()) + int(origin.sum()) != kx.size:
+        return data
+    order = np.lexsort((ky, kx))
+    mirror = np.lexsort((-ky, -kx))
+    if not (np.array_equal(kx[order], -kx[mirror]) and np.array_equal(ky[order], -ky[mirror])):
+        return data
+    keep = half | origin
+    values = np.where(half, 2.0, 1.0)[keep] * data.values[keep]
+    noise = None if data.noise is None else data.noise[keep]
+    return replace(data, kx=kx[keep], ky=ky[keep], values=values, noise=noise)
+
+
+def _shifted_moments(
+    coeff: np.ndarray,
+    qx: np.ndarray,
+    qy: np.ndarray,
+    to_x0: np.ndarray,
+    zi: np.ndarray,
+    grid: np.ndarray,
+) -> np.ndarray:
+    """Moments and shear derivatives of a template's copies on its position grid.
+
+    ``coeff`` (6, 6, r, k): the coefficients times the template's samples at the rotated
+    wavenumbers ``q = (qx, qy)`` (r, k); the copy of rotation ``r`` at position ``s`` sits
+    at ``x0 = to_x0[r] z_s`` with ``z_s = (zi[grid[0, s]], zi[grid[1, s]])``, so its
+    moments are ``Re sum_k coeff exp(-i q.x0)``. Since ``q.x0 = p.z`` with
+    ``p = to_x0^T q``, the phase factorises into one exponential per grid axis, and the
+    sum over ``k`` is a real matrix product.
+
+    Returns
+    -------
+    ndarray, shape (r * s, 6, 6)
+        Copies in the order ``(rotation, position)``.
+    """
+    px = to_x0[:, 0, 0, None] * qx + to_x0[:, 1, 0, None] * qy  # (r, k)
+    py = to_x0[:, 0, 1, None] * qx + to_x0[:, 1, 1, None] * qy
+    ex = np.exp(-1j * px[:, None, :] * zi[None, :, None])  # (r, n_grid, k)
+    ey = np.exp(-1j * py[:, None, :] * zi[None, :, None])
+    phase = ex[:, grid[0]] * ey[:, grid[1]]  # (r, s, k)
+    n_rot, n_k = qx.shape
+    c = coeff.reshape(36, n_rot, n_k).transpose(1, 0, 2)  # (r, 36, k)
+    # Re(c . phase) = Re c . Re phase - Im c . Im phase, as one real product per rotation
+    stacked = np.concatenate([c.real, -c.imag], axis=2)  # (r, 36, 2k)
+    waves = np.concatenate([phase.real, phase.imag], axis=2)  # (r, s, 2k)
+    out = np.matmul(waves, stacked.transpose(0, 2, 1))  # (r, s, 36)
+    return out.reshape(-1, 6, 6)
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,8 +241,10 @@ class TemplatePrior:
         chol_odd = np.linalg.cholesky(cov_odd)
         n = int(np.floor(shift_radius / shift_step))
         zi = np.arange(-n, n + 1) * shift_step
-        z = np.stack(np.meshgrid(zi, zi, indexing="ij"), -1).reshape(-1, 2)
-        z = z[np.hypot(z[:, 0], z[:, 1]) <= shift_radius + 1e-12]
+        steps = np.arange(2 * n + 1)
+        grid = np.stack(np.meshgrid(steps, steps, indexing="ij")).reshape(2, -1)
+        grid = grid[:, np.hypot(*zi[grid]) <= shift_radius + 1e-12]  # (2, positions)
+        z = zi[grid].T  # (positions, 2)
         angles = np.pi * np.arange(n_rotations) / n_rotations
         cos, sin = np.cos(angles), np.sin(angles)
         a_inv = _inverse_shear(shear)
@@ -183,7 +253,7 @@ class TemplatePrior:
             m0 = measure_moments(template)
             if not m0.converged:
                 raise BfdError("a template could not be centred (no null-centroid point)")
-            data = template.shifted(m0.centre)
+            data = _half_plane(template.shifted(m0.centre))
             # Rotated wavenumbers q = R k, shape (n_rot, 2, n_k).
             qx = cos[:, None] * data.kx - sin[:, None] * data.ky
             qy = sin[:, None] * data.kx + cos[:, None] * data.ky
@@ -197,9 +267,7 @@ class TemplatePrior:
             if np.any(np.linalg.det(jac) <= 0.0):
                 raise BfdError("a template has a non-positive centroid jacobian")
             to_x0 = np.linalg.solve(jac, chol_odd[None])  # (r, 2, 2): x0 = J^-1 L z
-            x0 = np.einsum("rij,sj->rsi", to_x0, z)
-            phase = np.exp(-1j * (qx[:, None] * x0[..., :1] + qy[:, None] * x0[..., 1:]))
-            moments.append(np.real(np.einsum("adrk,rsk->rsad", coeff, phase)).reshape(-1, 6, 6))
+            moments.append(_shifted_moments(coeff, qx, qy, to_x0, zi, grid))
             area = np.abs(np.linalg.det(to_x0)) * shift_step**2
             weights.append(np.repeat(area * weight / n_rotations, len(z)))
             centred.append(np.real(coeff[:4].sum(-1)).transpose(2, 0, 1))
@@ -362,6 +430,29 @@ def _shear_from_sums(
         return np.full(2, np.nan)
 
 
+def paired_terms(plus: Pqr, minus: Pqr) -> np.ndarray:
+    """Per-object summable terms of paired targets: row ``k`` holds the ``+g`` member's
+    ``selected, Q/P, (Q/P)(Q/P)^T - R/P`` (7 columns), then the ``-g`` member's.
+
+    Sums of rows (all, or a jackknife's subsets) give the mean shears through
+    :func:`bias_from_sums`.
+    """
+    if len(plus.P) != len(minus.P):
+        raise BfdError("plus and minus must hold the same targets")
+    return np.hstack([_per_target(plus), _per_target(minus)])
+
+
+def bias_from_sums(
+    sums: np.ndarray, selection: tuple[float, np.ndarray, np.ndarray], true_g: float
+) -> np.ndarray:
+    """``(m1, c1, c2)`` from summed :func:`paired_terms` (``selection``: the prior's
+    :meth:`TemplatePrior.selection_pqr`)."""
+    g_plus = _shear_from_sums(sums[:7], selection)
+    g_minus = _shear_from_sums(sums[7:], selection)
+    m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
+    return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
+
+
 def paired_bias(
     plus: Pqr,
     minus: Pqr,
@@ -378,9 +469,7 @@ def paired_bias(
     g-_i) / 2``. Jackknife as :func:`cellcoadd.shear.multiplicative_bias` (a pair's members
     and each ``group`` of consecutive rows removed together).
     """
-    if len(plus.P) != len(minus.P):
-        raise BfdError("plus and minus must hold the same targets")
-    terms = np.hstack([_per_target(plus), _per_target(minus)])
+    terms = paired_terms(plus, minus)
     selection = prior.selection_pqr()
 
     return paired_shear_bias(
