@@ -6,14 +6,10 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS, Sip
 
+from cellcoadd.builder.footprint import footprint_box
 from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
-from cellcoadd.builder.mapping import (
-    MappingError,
-    PixelMapping,
-    footprint_box,
-    map_box,
-    map_points,
-)
+from cellcoadd.builder.mapping import PixelMapping, map_box, map_points
+from cellcoadd.errors import MappingError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import pixel_area
 

@@ -30,10 +30,11 @@ from cellcoadd.builder.cell_sums import (
 )
 from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
+from cellcoadd.builder.footprint import footprint_box
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
 from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
-from cellcoadd.builder.mapping import PixelMapping, footprint_box
+from cellcoadd.builder.mapping import PixelMapping
 from cellcoadd.builder.psf import PsfError, psf_moments
 from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
 from cellcoadd.errors import InputError

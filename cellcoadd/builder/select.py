@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from astropy.wcs.wcs import NoConvergence
 
-from cellcoadd.builder.mapping import PixelMapping, footprint_box, map_box
+from cellcoadd.builder.footprint import footprint_box
+from cellcoadd.builder.mapping import PixelMapping, map_box
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
