@@ -115,16 +115,21 @@ def pixel_area(wcs: WCS, x: float, y: float) -> float:
     return float(abs(np.linalg.det(local_jacobian(wcs, x, y))))
 
 
-def shifted_wcs(wcs: WCS, x_start: int, y_start: int, *, canonical: bool = True) -> WCS:
+def shifted_wcs(
+    wcs: WCS, x_start: int, y_start: int, *, canonical: bool = True, from_canonical: bool = False
+) -> WCS:
     """Copy of ``wcs`` whose array pixel (0, 0) is its pixel ``(x_start, y_start)``: the
     WCS of a cutout starting there.
 
     Exact for TAN, TPV and SIP: their distortions are functions of the offset from the
     reference pixel, which moves with it (the SIP polynomials carry their own copy of
     it). Lookup-table distortions (``cpdis``, ``det2im``) are refused. The copy is put in
-    :func:`canonical_wcs` form unless ``canonical=False``: for a tract's WCS, already
-    canonical and with an integer or half-integer reference pixel, an integer shift stays canonical
-    (tested), and skipping the round trip saves ~10 ms per cell.
+    :func:`canonical_wcs` form unless ``canonical=False``. When ``wcs`` is canonical
+    already (``from_canonical=True``), only the new reference pixel can change in a round
+    trip (it is written with the fewest digits that give it back, so ``8914.4 - 812``
+    comes back as the double nearest 8102.4), so it alone is re-rounded that way: the
+    same result as the round trip (tested for TAN, SIP and TPV) at ~0.1 ms instead of
+    ~2.5 ms.
     """
     from astropy.wcs import Sip
 
@@ -132,11 +137,20 @@ def shifted_wcs(wcs: WCS, x_start: int, y_start: int, *, canonical: bool = True)
         raise ValueError("cannot shift a WCS with lookup-table distortions")
     out = wcs.deepcopy()
     out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
+    if from_canonical:
+        header = out.wcs.to_header()  # the reference pixel as a round trip writes it
+        cards = {line[:8].strip(): line[10:].split("/")[0] for line in _cards(header)}
+        out.wcs.crpix = [float(cards["CRPIX1"]), float(cards["CRPIX2"])]
     if out.sip is not None:
         sip = out.sip
         out.sip = Sip(sip.a, sip.b, sip.ap, sip.bp, out.wcs.crpix)
     out.wcs.set()
-    return canonical_wcs(out) if canonical else out
+    return canonical_wcs(out) if canonical and not from_canonical else out
+
+
+def _cards(header: str) -> list[str]:
+    """The 80-character cards of a FITS header string."""
+    return [header[i : i + 80] for i in range(0, len(header), 80)]
 
 
 def canonical_wcs(wcs: WCS) -> WCS:

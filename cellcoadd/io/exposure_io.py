@@ -44,10 +44,11 @@ from typing import Any, BinaryIO, TypeVar
 
 import fitsio
 import numpy as np
+from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io.atomic import atomic_write, exists_error
 from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io.disk_space import check_free_space
@@ -177,7 +178,9 @@ def write_exposure(
     )
 
 
-def read_exposure(path: str | os.PathLike[str], box: Box | None = None) -> Exposure:
+def read_exposure(
+    path: str | os.PathLike[str], box: Box | None = None, *, wcs: WCS | None = None
+) -> Exposure:
     """Read an exposure written by :func:`write_exposure`, or its cutout over ``box``.
 
     Parameters
@@ -189,19 +192,25 @@ def read_exposure(path: str | os.PathLike[str], box: Box | None = None) -> Expos
         those pixels are read, and the result is an exposure with ``origin`` and WCS
         of the cutout. The checksums of a file are verified when it is read whole; a
         cutout verifies its small HDUs (META, PSF) only.
+    wcs : astropy.wcs.WCS, optional
+        The file's WCS as :func:`read_exposure_header` returned it (canonical), used
+        instead of parsing the header again (saves ~6 ms); its CRPIX and CRVAL are
+        checked against the file's. The result is the same.
 
     Raises
     ------
     CellCoaddFormatError
         For a missing, unreadable, truncated, corrupted (CHECKSUM/DATASUM or DATACRC) or
-        inconsistent file, or one of another kind; never another exception type.
+        inconsistent file, or one of another kind, or a ``wcs`` of another file; never
+        another exception type.
     """
-    return _with_file(path, lambda fits_file, raw: _read(fits_file, raw, box))
+    return _with_file(path, lambda fits_file, raw: _read(fits_file, raw, box, wcs))
 
 
 def read_exposure_header(path: str | os.PathLike[str]) -> ExposureHeader:
     """What a build needs to know of an exposure file before its pixels: identity, band,
-    WCS, shape, valid box, zero point and mask bits (no pixel is read)."""
+    WCS (in :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs` form), shape, valid box,
+    zero point and mask bits (no pixel is read)."""
     return _with_file(path, lambda fits_file, raw: _header(fits_file, raw))
 
 
@@ -281,7 +290,7 @@ def _header(fits_file: fitsio.FITS, raw: BinaryIO) -> ExposureHeader:
         visit=int(meta["visit"]),
         detector=int(meta["detector"]),
         band=meta["band"],
-        wcs=read_wcs(image_header, meta["wcs_exact"]),
+        wcs=canonical_wcs(read_wcs(image_header, meta["wcs_exact"])),
         shape=_image_shape(fits_file),
         valid_box=Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1),
         zero_point=as_float(meta["zero_point"], "zero_point"),
@@ -289,9 +298,11 @@ def _header(fits_file: fitsio.FITS, raw: BinaryIO) -> ExposureHeader:
     )
 
 
-def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Exposure:
+def _read(
+    fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None, wcs: WCS | None = None
+) -> Exposure:
     """The exposure in ``fits_file`` (its cutout over ``box``); ``raw`` is the same file,
-    for the checksums."""
+    for the checksums; ``wcs`` its canonical WCS if already read."""
     names, meta, image_header = _open_parts(fits_file, raw, verify_all=box is None)
     full = Box.from_shape(_image_shape(fits_file))
     cut = full if box is None else box.intersection(full)
@@ -321,12 +332,16 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Expo
     psf_array = _native(fits_file["PSF"].read()) if "PSF" in names else None
     x0, x1, y0, y1 = (int(v) for v in meta["valid_box"])
     valid = Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1).intersection(cut)
-    wcs = read_wcs(image_header, meta["wcs_exact"])
+    if wcs is None:
+        wcs = canonical_wcs(read_wcs(image_header, meta["wcs_exact"]))
+    else:
+        _check_same_wcs(wcs, meta["wcs_exact"])
     ox, oy = _meta_origin(meta)
     return Exposure(
         image=image,
-        # Exposure puts the WCS in canonical form: no need to do it twice
-        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start, canonical=False),
+        # the canonical WCS shifted, re-rounded as a round trip would (tested)
+        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start, from_canonical=True),
+        wcs_is_canonical=True,
         variance=variance,
         psf=read_psf(meta["psf"], psf_array),
         visit=int(meta["visit"]),
@@ -343,6 +358,15 @@ def _read(fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None) -> Expo
 #: Largest ratio of declared to stored bytes of a tile-compressed HDU (deflate cannot
 #: compress more than about 1032:1; RICE less).
 _MAX_COMPRESSION = 1100
+
+
+def _check_same_wcs(wcs: WCS, exact: dict[str, Any]) -> None:
+    """Refuse a WCS given for this file whose CRPIX or CRVAL are not the file's."""
+    for key in ("CRPIX1", "CRPIX2", "CRVAL1", "CRVAL2"):
+        axis = int(key[-1]) - 1
+        given = float((wcs.wcs.crpix if key.startswith("CRPIX") else wcs.wcs.crval)[axis])
+        if key in exact and given != as_float(exact[key], key):
+            raise _fail(f"the WCS given for this file has another {key} ({given})")
 
 
 def _check_plane_dims(fits_file: fitsio.FITS, names: list[str], shape: tuple[int, int]) -> None:

@@ -30,5 +30,9 @@ class ExposureFile(ExposureSource):
     def load(self, box: Box | None = None) -> Exposure:
         return read_exposure(self.path, box)
 
+    def load_described(self, header: ExposureHeader, box: Box | None = None) -> Exposure:
+        # the header's WCS (canonical) instead of parsing the file's again
+        return read_exposure(self.path, box, wcs=header.wcs)
+
     def __repr__(self) -> str:
         return f"ExposureFile({self.path!r})"

@@ -30,7 +30,7 @@ from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.wcs_utils import canonical_wcs
+from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io.fits_paths import cfitsio_path
 from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, HduRef, MefLayout, zero_point_from
 from cellcoadd.model.exposure import Exposure, PsfLike
@@ -57,7 +57,6 @@ class _Meta:
     """What the headers of an exposure file say."""
 
     header: ExposureHeader
-    wcs_header: fits.Header
     image: int
     mask: int
     plane: int
@@ -159,15 +158,6 @@ def _wcs(path: str, header: fits.Header, what: str) -> WCS:
     return wcs
 
 
-def _shifted_header(header: fits.Header, box: Box) -> fits.Header:
-    """``header`` for the cutout ``box``: CRPIX minus the offset, NAXIS the box's."""
-    out = header.copy()
-    out["CRPIX1"] = float(header.get("CRPIX1", 0.0)) - box.x_start
-    out["CRPIX2"] = float(header.get("CRPIX2", 0.0)) - box.y_start
-    out["NAXIS1"], out["NAXIS2"] = box.nx, box.ny
-    return out
-
-
 class MefExposureFile(ExposureSource):
     """One detector exposure in a multi-extension FITS file of a known layout.
 
@@ -231,8 +221,16 @@ class MefExposureFile(ExposureSource):
 
     def load(self, box: Box | None = None) -> Exposure:
         """The exposure, or its cutout over ``box`` (detector pixels, clipped)."""
+        return self._load(box, None)
+
+    def load_described(self, header: ExposureHeader, box: Box | None = None) -> Exposure:
+        """:meth:`load`, with the WCS of ``header`` (what :meth:`header` returned)
+        instead of parsing the file's again."""
+        return self._load(box, header.wcs)
+
+    def _load(self, box: Box | None, wcs: WCS | None) -> Exposure:
         with _OpenFile(self.path) as headers:
-            meta = self._meta(headers)
+            meta = self._meta(headers, wcs)
             cut = cutout_box(meta.header, box)
             image = headers.pixels(meta.image, cut, "image")
             mask = headers.pixels(meta.mask, cut, "mask")
@@ -256,11 +254,12 @@ class MefExposureFile(ExposureSource):
         if background is not None:
             image = image - background
         variance = self._variance(plane, mask, meta)
-        wcs = _wcs(self.path, _shifted_header(meta.wcs_header, cut), "cutout")
         try:
             return Exposure(
                 image=image,
-                wcs=wcs,
+                # the canonical WCS shifted, re-rounded as a round trip would (tested)
+                wcs=shifted_wcs(meta.header.wcs, cut.x_start, cut.y_start, from_canonical=True),
+                wcs_is_canonical=True,
                 variance=variance,
                 psf=self.psf,
                 visit=meta.header.visit,
@@ -286,7 +285,8 @@ class MefExposureFile(ExposureSource):
         mask |= np.int32(meta.header.mask_bits.value(self.layout.zero_weight_bit)) * bad
         return variance
 
-    def _meta(self, headers: _Headers) -> _Meta:
+    def _meta(self, headers: _Headers, wcs: WCS | None = None) -> _Meta:
+        """What the headers say; the WCS parsed unless given (canonical)."""
         layout = self.layout
         primary = headers.header(0)
         image = headers.index(layout.image_hdu, "image")
@@ -313,8 +313,9 @@ class MefExposureFile(ExposureSource):
                 )
         image_header = headers.header(image)
         searched = [(0, primary), (image, image_header)] if image != 0 else [(0, primary)]
-        wcs_header = _astropy_header(image_header, shape)
-        wcs = canonical_wcs(_wcs(self.path, wcs_header, f"HDU {headers.label(image)}"))
+        if wcs is None:
+            wcs_header = _astropy_header(image_header, shape)
+            wcs = canonical_wcs(_wcs(self.path, wcs_header, f"HDU {headers.label(image)}"))
         exposure_header = ExposureHeader(
             visit=self._identity(headers, searched, layout.visit_keys, self.visit, "visit"),
             detector=self._identity(
@@ -329,7 +330,6 @@ class MefExposureFile(ExposureSource):
         )
         return _Meta(
             header=exposure_header,
-            wcs_header=wcs_header,
             image=image,
             mask=mask,
             plane=plane,

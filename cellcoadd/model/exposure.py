@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 from typing import TypeAlias
 
@@ -72,6 +72,11 @@ class Exposure:
         cutout of a detector image (``wcs`` then describes the cutout). The PSF model and
         the noise realizations are evaluated in detector pixels, so a cutout gives the
         same values as the whole detector image.
+    wcs_is_canonical : bool
+        Declare ``wcs`` already in :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`
+        form (e.g. from ``shifted_wcs(..., from_canonical=True)``), which skips putting it in that
+        form again (~3 ms). Readers set it; a wrong declaration can change the last bits
+        of results between processes.
 
     Notes
     -----
@@ -91,8 +96,9 @@ class Exposure:
     mask_bits: MaskBits = field(default_factory=MaskBits)
     valid_box: Box | None = None
     origin: tuple[int, int] = (0, 0)
+    wcs_is_canonical: InitVar[bool] = False
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, wcs_is_canonical: bool) -> None:
         name = f"exposure (visit={self.visit}, detector={self.detector})"
         for field_name in ("visit", "detector"):
             value = getattr(self, field_name)
@@ -112,7 +118,9 @@ class Exposure:
             raise ExposureError(f"{name}: image must be real-valued, got dtype {self.image.dtype}")
         if not np.issubdtype(self.image.dtype, np.floating):
             object.__setattr__(self, "image", self.image.astype(np.float64))
-        object.__setattr__(self, "wcs", _checked_wcs(name, self.wcs, self.image.shape))
+        object.__setattr__(
+            self, "wcs", _checked_wcs(name, self.wcs, self.image.shape, wcs_is_canonical)
+        )
         zero_point = self.zero_point
         if isinstance(zero_point, bool) or not isinstance(zero_point, numbers.Real):
             raise ExposureError(f"{name}: zero_point must be a number, got {zero_point!r}")
@@ -208,8 +216,9 @@ class Exposure:
         return self.psf_model.draw(x + ox, y + oy, shifted, jacobian, center)
 
 
-def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:
-    """``wcs`` in canonical form, if it is a usable equatorial celestial WCS of the image.
+def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...], is_canonical: bool = False) -> WCS:
+    """``wcs`` in canonical form (as it is when ``is_canonical``), if it is a usable
+    equatorial celestial WCS of the image.
 
     Refused: non-celestial WCSs, other frames (galactic, ecliptic: their longitudes would
     be taken for RA), more than two pixel axes, and a singular or non-finite pixel scale
@@ -221,7 +230,8 @@ def _checked_wcs(name: str, wcs: object, shape: tuple[int, ...]) -> WCS:
     try:
         celestial, n_axes = checked.has_celestial, checked.pixel_n_dim
         if celestial and n_axes == 2:
-            checked = canonical_wcs(checked)
+            if not is_canonical:
+                checked = canonical_wcs(checked)
             axes = (checked.wcs.lngtyp, checked.wcs.lattyp)
             ny, nx = shape
             jacobian = local_jacobian(checked, (nx - 1) / 2.0, (ny - 1) / 2.0)

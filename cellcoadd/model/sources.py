@@ -72,6 +72,12 @@ class ExposureSource(ABC):
         to the detector): an :class:`Exposure` whose ``origin`` is the box's start and
         whose WCS describes the cutout."""
 
+    def load_described(self, header: ExposureHeader, box: Box | None = None) -> Exposure:
+        """:meth:`load`, given ``header``, what :meth:`header` returned (here or in
+        another process). Sources that can reuse it, e.g. its WCS instead of parsing
+        the file's again, override this; the result must be :meth:`load`'s."""
+        return self.load(box)
+
 
 def cutout_box(header: ExposureHeader, box: Box | None) -> Box:
     """``box`` clipped to the detector (the whole detector for None).
@@ -104,7 +110,10 @@ class DescribedSource:
         return self.header.key
 
     def load(self, box: Box | None = None) -> Exposure:
-        return self.source.load(box)
+        source = self.source
+        if isinstance(source, ExposureSource):
+            return source.load_described(self.header, box)
+        return source.load(box)  # any object with header() and load()
 
 
 def describe(item: Exposure | ExposureSource | DescribedSource) -> Exposure | DescribedSource:
