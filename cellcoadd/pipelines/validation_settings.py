@@ -14,6 +14,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.shear.bfd_moments import DEFAULT_OVERSAMPLE
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
@@ -29,11 +30,8 @@ METHOD_MODES: dict[str, tuple[str, ...]] = {
 }
 
 
-#: Default k-space oversampling of the BFD moments (``bfd_oversample``): the smallest
-#: zero-padding factor whose high-S/N check agrees with the converged (8-fold) one on the
-#: same pairs, to 7e-6 in m1 against 1e-4 for 3-fold and 0.03 for none (docs/validation.md,
-#: "k sampling"); the prior then costs ~16 times the unpadded one.
-BFD_OVERSAMPLE = 4
+#: Default k-space oversampling of the BFD moments (``bfd_oversample``): the library's.
+BFD_OVERSAMPLE = DEFAULT_OVERSAMPLE
 
 
 def check_method_mode(method: str, mode: str, reconvolution_psf: str = "gauss") -> None:

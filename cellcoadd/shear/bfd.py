@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from cellcoadd.shear.bfd_epochs import combine_epochs, sum_epochs
 from cellcoadd.shear.bfd_moments import (
+    DEFAULT_OVERSAMPLE,
     EVEN_NAMES,
     ODD_NAMES,
     BfdError,
@@ -46,6 +47,7 @@ from cellcoadd.shear.bfd_moments import (
 from cellcoadd.shear.bfd_prior import Pqr, TemplatePrior, estimate_shear, paired_bias
 
 __all__ = [
+    "DEFAULT_OVERSAMPLE",
     "EVEN_NAMES",
     "ODD_NAMES",
     "BfdError",
