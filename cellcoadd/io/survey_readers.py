@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import fitsio
@@ -31,8 +30,8 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
-from cellcoadd.io.fits_paths import cfitsio_path
-from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, HduRef, MefLayout, zero_point_from
+from cellcoadd.io.mef_file import MefFile, open_mef
+from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf import PiffPsf, PsfexPsf
@@ -61,61 +60,6 @@ class _Meta:
     mask: int
     plane: int
     background: int | None
-
-
-class _Headers:
-    """An open FITS file whose headers are each read at most once."""
-
-    def __init__(self, path: str, fits_file: fitsio.FITS):
-        self.path = path
-        self.fits = fits_file
-        self._cache: dict[int, fitsio.FITSHDR] = {}
-
-    def fail(self, index: int | None, problem: str) -> CellCoaddFormatError:
-        where = f"HDU {self.label(index)}: " if index is not None else ""
-        return CellCoaddFormatError(self.path, where + problem)
-
-    def label(self, index: int) -> str:
-        name = self.fits[index].get_extname()
-        return f"{index} ({name})" if name else str(index)
-
-    def header(self, index: int) -> fitsio.FITSHDR:
-        if index not in self._cache:
-            self._cache[index] = self.fits[index].read_header()
-        return self._cache[index]
-
-    def index(self, ref: HduRef, what: str) -> int:
-        """HDU number of ``ref``: a number, an EXTNAME, else an EXTTYPE (no case)."""
-        count = len(self.fits)
-        if isinstance(ref, int):
-            if 0 <= ref < count:
-                return ref
-        else:
-            wanted = ref.strip().upper()
-            for i in range(count):
-                if self.fits[i].get_extname().strip().upper() == wanted:
-                    return i
-            for i in range(count):
-                if str(self.header(i).get("EXTTYPE", "")).strip().upper() == wanted:
-                    return i
-        names = [self.label(i) for i in range(count)]
-        raise CellCoaddFormatError(self.path, f"no {what} HDU {ref!r} (HDUs: {names})")
-
-    def dims(self, index: int, what: str) -> tuple[int, int]:
-        dims: tuple[int, ...] = tuple(int(d) for d in self.fits[index].get_dims())
-        if self.fits[index].get_exttype() != "IMAGE_HDU" or len(dims) != 2 or 0 in dims:
-            raise self.fail(index, f"the {what} is not a 2-D image (dimensions {dims})")
-        return (dims[0], dims[1])
-
-    def pixels(self, index: int, box: Box, what: str) -> np.ndarray:
-        try:
-            data = self.fits[index][box.y_start : box.y_stop, box.x_start : box.x_stop]
-        except (OSError, ValueError) as err:
-            raise self.fail(index, f"cannot read the {what} pixels ({err})") from None
-        data = np.asarray(data)
-        if not data.dtype.isnative:
-            data = data.astype(data.dtype.newbyteorder("="))
-        return data
 
 
 #: Keywords of a tile-compressed HDU's table header that are not the image's.
@@ -212,10 +156,10 @@ class MefExposureFile(ExposureSource):
 
     def header(self) -> ExposureHeader:
         """Identity, band, WCS, shape and valid region, from the headers only."""
-        with _OpenFile(self.path) as headers:
+        with open_mef(self.path) as headers:
             meta = self._meta(headers)
         if self.background is not None:
-            with _OpenFile(self.background) as bkg:
+            with open_mef(self.background) as bkg:
                 self._background_index(bkg, meta.header.shape)
         return meta.header
 
@@ -224,13 +168,13 @@ class MefExposureFile(ExposureSource):
         return self._load(box, None)
 
     def load_described(self, header: ExposureHeader, box: Box | None = None) -> Exposure:
-        """:meth:`load`, with the WCS of ``header`` (what :meth:`header` returned)
-        instead of parsing the file's again."""
-        return self._load(box, header.wcs)
+        """:meth:`load`, with ``header`` (what :meth:`header` returned) instead of
+        parsing the file's headers again: only the pixels are read."""
+        return self._load(box, header)
 
-    def _load(self, box: Box | None, wcs: WCS | None) -> Exposure:
-        with _OpenFile(self.path) as headers:
-            meta = self._meta(headers, wcs)
+    def _load(self, box: Box | None, described: ExposureHeader | None) -> Exposure:
+        with open_mef(self.path) as headers:
+            meta = self._meta(headers, described)
             cut = cutout_box(meta.header, box)
             image = headers.pixels(meta.image, cut, "image")
             mask = headers.pixels(meta.mask, cut, "mask")
@@ -248,7 +192,7 @@ class MefExposureFile(ExposureSource):
                     meta.mask, f"mask bits {unknown:#x} have no name (named: {sorted(names.bits)})"
                 )
         if self.background is not None:
-            with _OpenFile(self.background) as bkg:
+            with open_mef(self.background) as bkg:
                 index = self._background_index(bkg, meta.header.shape)
                 background = bkg.pixels(index, cut, "background")
         if background is not None:
@@ -285,10 +229,9 @@ class MefExposureFile(ExposureSource):
         mask |= np.int32(meta.header.mask_bits.value(self.layout.zero_weight_bit)) * bad
         return variance
 
-    def _meta(self, headers: _Headers, wcs: WCS | None = None) -> _Meta:
-        """What the headers say; the WCS parsed unless given (canonical)."""
+    def _meta(self, headers: MefFile, described: ExposureHeader | None = None) -> _Meta:
+        """Where the planes are and what the headers say (``described``, when given)."""
         layout = self.layout
-        primary = headers.header(0)
         image = headers.index(layout.image_hdu, "image")
         mask = headers.index(layout.mask_hdu, "mask")
         plane_ref = layout.variance_hdu if layout.variance_hdu is not None else layout.weight_hdu
@@ -311,11 +254,14 @@ class MefExposureFile(ExposureSource):
                 raise headers.fail(
                     image, "the image is not background subtracted: give a background file"
                 )
-        image_header = headers.header(image)
+        if described is not None:
+            if described.shape != shape:
+                raise headers.fail(image, f"shape {shape}, described as {described.shape}")
+            return _Meta(described, image, mask, plane, background)
+        primary, image_header = headers.header(0), headers.header(image)
         searched = [(0, primary), (image, image_header)] if image != 0 else [(0, primary)]
-        if wcs is None:
-            wcs_header = _astropy_header(image_header, shape)
-            wcs = canonical_wcs(_wcs(self.path, wcs_header, f"HDU {headers.label(image)}"))
+        wcs_header = _astropy_header(image_header, shape)
+        wcs = canonical_wcs(_wcs(self.path, wcs_header, f"HDU {headers.label(image)}"))
         exposure_header = ExposureHeader(
             visit=self._identity(headers, searched, layout.visit_keys, self.visit, "visit"),
             detector=self._identity(
@@ -338,7 +284,7 @@ class MefExposureFile(ExposureSource):
 
     def _identity(
         self,
-        headers: _Headers,
+        headers: MefFile,
         searched: list[tuple[int, fitsio.FITSHDR]],
         keys: tuple[str, ...],
         given: int | None,
@@ -360,7 +306,7 @@ class MefExposureFile(ExposureSource):
             self.path, f"no {what} keyword {list(keys)} in HDUs {hdus}: pass {what}="
         )
 
-    def _band(self, headers: _Headers, searched: list[tuple[int, fitsio.FITSHDR]]) -> str:
+    def _band(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> str:
         if self.band is not None:
             return self.band
         for key in self.layout.band_keys:
@@ -378,7 +324,7 @@ class MefExposureFile(ExposureSource):
         hdus = [headers.label(i) for i, _ in searched]
         raise CellCoaddFormatError(self.path, f"no band keyword {keys} in HDUs {hdus}: pass band=")
 
-    def _zero_point(self, headers: _Headers, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
+    def _zero_point(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
         for key in self.layout.zero_point_keys:
             for _, header in searched:
                 if key.keyword in header:
@@ -393,7 +339,7 @@ class MefExposureFile(ExposureSource):
             self.path, f"no zero point: no usable keyword {keys} in HDUs {hdus}; pass zero_point="
         )
 
-    def _mask_bits(self, headers: _Headers, mask: int) -> MaskBits:
+    def _mask_bits(self, headers: MefFile, mask: int) -> MaskBits:
         layout = self.layout
         bits = dict(layout.mask_bits) if layout.mask_bits is not None else {}
         if layout.mask_bits is None:
@@ -416,7 +362,7 @@ class MefExposureFile(ExposureSource):
         except ValueError as err:
             raise headers.fail(mask, f"bad mask-bit definitions ({err})") from None
 
-    def _background_index(self, headers: _Headers, shape: tuple[int, int]) -> int:
+    def _background_index(self, headers: MefFile, shape: tuple[int, int]) -> int:
         index = None
         for i in range(len(headers.fits)):
             if headers.fits[i].get_extname().strip().upper() == "SCI":
@@ -434,28 +380,6 @@ class MefExposureFile(ExposureSource):
         if dims != shape:
             raise headers.fail(index, f"the background has shape {dims}, the image {shape}")
         return index
-
-
-class _OpenFile:
-    """``with _OpenFile(path) as headers``: the file open for the block only."""
-
-    def __init__(self, path: str):
-        self.path = path
-        self._fits: Any = None
-
-    def __enter__(self) -> _Headers:
-        if not Path(self.path).is_file():
-            raise CellCoaddFormatError(self.path, "no such file")
-        try:
-            self._fits = fitsio.FITS(cfitsio_path(self.path))
-        except (OSError, ValueError) as err:
-            raise CellCoaddFormatError(self.path, f"not a readable FITS file ({err})") from None
-        return _Headers(self.path, self._fits)
-
-    def __exit__(self, *exc: object) -> None:
-        if self._fits is not None:
-            self._fits.close()
-            self._fits = None
 
 
 def read_mef_exposure(

@@ -1,0 +1,107 @@
+"""An open multi-extension FITS file, as the survey readers use it (headers, HDUs, pixels)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import fitsio
+import numpy as np
+
+from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.geometry.box import Box
+from cellcoadd.io.fits_headers import read_header
+from cellcoadd.io.fits_paths import cfitsio_path, starts_like_fits
+from cellcoadd.io.mef_layout import HduRef
+
+
+class MefFile:
+    """An open multi-extension FITS file: headers read at most once (:func:`read_header`),
+    HDUs found by number, EXTNAME or EXTTYPE, boxes of pixels read; errors name the file
+    and the HDU."""
+
+    def __init__(self, path: str, fits_file: fitsio.FITS, descriptor: int | None):
+        self.path = path
+        self.fits = fits_file
+        self.descriptor = descriptor  # the file's own bytes (see io.fits_headers), or None
+        self._cache: dict[int, fitsio.FITSHDR] = {}
+
+    def fail(self, index: int | None, problem: str) -> CellCoaddFormatError:
+        where = f"HDU {self.label(index)}: " if index is not None else ""
+        return CellCoaddFormatError(self.path, where + problem)
+
+    def label(self, index: int) -> str:
+        name = self.fits[index].get_extname()
+        return f"{index} ({name})" if name else str(index)
+
+    def header(self, index: int) -> fitsio.FITSHDR:
+        if index not in self._cache:
+            try:
+                self._cache[index] = read_header(self.fits[index], self.descriptor)
+            except OSError as err:
+                raise self.fail(index, f"cannot read the header ({err})") from None
+        return self._cache[index]
+
+    def index(self, ref: HduRef, what: str) -> int:
+        """HDU number of ``ref``: a number, an EXTNAME, else an EXTTYPE (no case)."""
+        count = len(self.fits)
+        if isinstance(ref, int):
+            if 0 <= ref < count:
+                return ref
+        else:
+            wanted = ref.strip().upper()
+            for i in range(count):
+                if self.fits[i].get_extname().strip().upper() == wanted:
+                    return i
+            for i in range(count):
+                if str(self.header(i).get("EXTTYPE", "")).strip().upper() == wanted:
+                    return i
+        names = [self.label(i) for i in range(count)]
+        raise CellCoaddFormatError(self.path, f"no {what} HDU {ref!r} (HDUs: {names})")
+
+    def dims(self, index: int, what: str) -> tuple[int, int]:
+        dims: tuple[int, ...] = tuple(int(d) for d in self.fits[index].get_dims())
+        if self.fits[index].get_exttype() != "IMAGE_HDU" or len(dims) != 2 or 0 in dims:
+            raise self.fail(index, f"the {what} is not a 2-D image (dimensions {dims})")
+        return (dims[0], dims[1])
+
+    def pixels(self, index: int, box: Box, what: str) -> np.ndarray:
+        try:
+            data = self.fits[index][box.y_start : box.y_stop, box.x_start : box.x_stop]
+        except (OSError, ValueError) as err:
+            raise self.fail(index, f"cannot read the {what} pixels ({err})") from None
+        data = np.asarray(data)
+        if not data.dtype.isnative:
+            data = data.astype(data.dtype.newbyteorder("="))
+        return data
+
+
+@contextmanager
+def open_mef(path: str) -> Iterator[MefFile]:
+    """``with open_mef(path) as mef``: the :class:`MefFile` of ``path``, open for the block.
+
+    Raises
+    ------
+    CellCoaddFormatError
+        When ``path`` is not a file or not a readable FITS file.
+    """
+    if not Path(path).is_file():
+        raise CellCoaddFormatError(path, "no such file")
+    fits_file: Any = None
+    descriptor: int | None = None
+    try:
+        try:
+            fits_file = fitsio.FITS(cfitsio_path(path))
+            if starts_like_fits(path):  # not inflated by CFITSIO: its bytes are the HDUs
+                descriptor = os.open(path, os.O_RDONLY)
+        except (OSError, ValueError) as err:
+            raise CellCoaddFormatError(path, f"not a readable FITS file ({err})") from None
+        yield MefFile(path, fits_file, descriptor)
+    finally:
+        if descriptor is not None:
+            os.close(descriptor)
+        if fits_file is not None:
+            fits_file.close()

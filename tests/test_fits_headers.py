@@ -1,0 +1,120 @@
+"""Long headers parsed from their raw cards say what fitsio's read_header says."""
+
+from __future__ import annotations
+
+import gzip
+import os
+import shutil
+from pathlib import Path
+
+import fitsio
+import numpy as np
+import pytest
+from test_survey_readers import (
+    DES_DATA,
+    PSF,
+    _need_des_files,
+    des_planes,
+    write_des,
+    write_lsst,
+)
+
+from cellcoadd.io.fits_headers import SHORT, RawHeader, read_header
+from cellcoadd.io.mef_layout import LSST_LAYOUT
+from cellcoadd.io.survey_readers import MefExposureFile
+
+
+def _same_header(fast: fitsio.FITSHDR, slow: fitsio.FITSHDR) -> None:
+    names = [r["name"] for r in slow.records()]
+    assert [r["name"] for r in fast.records()] == names
+    for name in names:
+        if not name or name in ("COMMENT", "HISTORY"):  # blank cards have no name
+            continue
+        a, b = fast.get(name), slow.get(name)
+        assert type(a) is type(b) and a == b, (name, a, b)
+        assert fast[name] == slow[name]
+
+
+def _check_every_hdu(path: Path) -> int:
+    """Compare every HDU of ``path``; the number of headers read the fast way."""
+    fast_ones = 0
+    with fitsio.FITS(str(path)) as fits_file:
+        descriptor = os.open(path, os.O_RDONLY)
+        try:
+            for hdu in fits_file:
+                fast = read_header(hdu, descriptor)
+                _same_header(fast, hdu.read_header())
+                fast_ones += isinstance(fast, RawHeader)
+        finally:
+            os.close(descriptor)
+    return fast_ones
+
+
+@pytest.fixture(scope="module")
+def survey_files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("headers")
+    files = [
+        write_lsst(root / "visit_image.fits"),
+        write_lsst(root / "v.fits.fz", compress="GZIP_2"),
+    ]
+    try:
+        _need_des_files()
+    except pytest.skip.Exception:
+        return files
+    planes = des_planes()
+    files.append(write_des(root / "D00154912_Y_c12_r1p1_immasked.fits", planes))
+    files.append(
+        write_des(root / "D00154912_Y_c12_r1p2_immasked.fits.fz", planes, compress="GZIP_2")
+    )
+    files.append(DES_DATA / "DECam_00154912_12_header.fits")
+    return files
+
+
+def test_survey_headers_read_fast_say_the_same(survey_files):
+    fast = sum(_check_every_hdu(path) for path in survey_files)
+    if len(survey_files) > 2:  # the DES headers (255 cards) are long: read the fast way
+        assert fast >= 7
+
+
+def _long_header_file(path: Path, extra: list[dict]) -> Path:
+    cards = [{"name": f"KEY{i:04d}", "value": i * 1.5, "comment": "a float"} for i in range(90)]
+    cards += [
+        {"name": "HIERARCH LSST BUTLER DATAID VISIT", "value": 2025061100123},
+        {"name": "FLAG", "value": True},
+        {"name": "BAND", "value": "r"},
+        {"name": "EMPTY", "value": ""},
+        *extra,
+    ]
+    with fitsio.FITS(str(path), "rw", clobber=True) as fits_file:
+        fits_file.write(np.zeros((4, 4), np.float32), header=cards)
+    return path
+
+
+def test_a_long_header_with_hierarch_bools_and_blanks(tmp_path):
+    path = _long_header_file(tmp_path / "long.fits", [])
+    assert os.path.getsize(path) > SHORT
+    assert _check_every_hdu(path) == 1
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        [{"name": "LONGSTR", "value": "x" * 150 + " end"}],  # CONTINUE cards: CFITSIO joins them
+        [{"name": "QUOTED", "value": "it's"}],  # written 'it''s'
+    ],
+)
+def test_cards_the_fast_parser_reads_otherwise_are_left_to_fitsio(tmp_path, extra):
+    path = _long_header_file(tmp_path / "special.fits", extra)
+    assert _check_every_hdu(path) == 0  # read by fitsio, and the same
+
+
+def test_a_gzip_stream_is_read_by_cfitsio(survey_files, tmp_path):
+    plain = survey_files[0]
+    packed = tmp_path / "visit_image.fits.gz"
+    with open(plain, "rb") as source, gzip.open(packed, "wb") as target:
+        shutil.copyfileobj(source, target)
+    a = MefExposureFile(plain, LSST_LAYOUT, PSF).header()
+    b = MefExposureFile(packed, LSST_LAYOUT, PSF).header()
+    assert (a.key, a.band, a.shape, a.zero_point) == (b.key, b.band, b.shape, b.zero_point)
+    assert a.mask_bits.bits == b.mask_bits.bits
+    assert a.wcs.to_header_string() == b.wcs.to_header_string()
