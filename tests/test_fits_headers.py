@@ -5,6 +5,7 @@ from __future__ import annotations
 import gzip
 import os
 import shutil
+import warnings
 from pathlib import Path
 
 import fitsio
@@ -20,7 +21,7 @@ from test_survey_readers import (
 )
 
 from cellcoadd.io.fits_headers import SHORT, RawHeader, read_header
-from cellcoadd.io.mef_layout import LSST_LAYOUT
+from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT
 from cellcoadd.io.survey_readers import MefExposureFile
 
 
@@ -118,3 +119,48 @@ def test_a_gzip_stream_is_read_by_cfitsio(survey_files, tmp_path):
     assert (a.key, a.band, a.shape, a.zero_point) == (b.key, b.band, b.shape, b.zero_point)
     assert a.mask_bits.bits == b.mask_bits.bits
     assert a.wcs.to_header_string() == b.wcs.to_header_string()
+
+
+def _all_cards_wcs(header: fitsio.FITSHDR, shape: tuple[int, int]):
+    """The WCS astropy makes from every card of the image header (what was read before)."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    cards = []
+    for record in header.records():
+        name = str(record.get("name") or "").upper()
+        if not name or name.startswith(("NAXIS", "Z", "XTENSION", "SIMPLE", "BITPIX", "EXTEND")):
+            continue
+        if name in ("PCOUNT", "GCOUNT", "TFIELDS", "COMMENT", "HISTORY"):
+            continue
+        cards.append(fits.Card.fromstring(record["card_string"]))
+    out = fits.Header(cards)
+    out["NAXIS"], out["NAXIS1"], out["NAXIS2"] = 2, shape[1], shape[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return WCS(out)
+
+
+def test_the_wcs_from_its_cards_alone_is_the_wcs_from_every_card(survey_files):
+    """Only WCS keywords are handed to astropy (it verifies every card it gets): the
+    canonical WCS is the same, parameters, FITS text and all, as from the whole header."""
+    from cellcoadd.geometry.wcs_utils import canonical_wcs
+
+    layouts = {"visit_image.fits": LSST_LAYOUT, "v.fits.fz": LSST_LAYOUT}
+    checked = 0
+    for path in survey_files:
+        layout = layouts.get(path.name, DES_LAYOUT)
+        if path.name.endswith("_header.fits"):
+            continue  # a header without planes
+        source = MefExposureFile(path, layout, PSF, zero_point=30.0)
+        described = source.header().wcs
+        with fitsio.FITS(str(path)) as fits_file:
+            name = "IMAGE" if layout is LSST_LAYOUT else "SCI"
+            hdu = fits_file[name]
+            dims = tuple(int(d) for d in hdu.get_dims())
+            reference = canonical_wcs(_all_cards_wcs(hdu.read_header(), dims))
+        _, (_, state_a, text_a) = described.__reduce__()[:2]
+        _, (_, state_b, text_b) = reference.__reduce__()[:2]
+        assert text_a == text_b and state_a == state_b, path.name
+        checked += 1
+    assert checked >= 2
