@@ -152,3 +152,20 @@ def test_a_source_without_load_described_is_loaded_plainly(sources):
     described = DescribedSource(Plain(), inner.header())
     _same_exposure(described.load(box), inner.load(box))
     assert calls == [box]
+
+
+def test_a_shift_of_a_wcs_with_many_digits_is_canonical():
+    """Canonical form keeps ~14 digits of CRPIX and CRVAL; the shifted reference pixel is
+    re-rounded the same way."""
+    from astropy.wcs import WCS
+
+    wcs = WCS(naxis=2)
+    wcs.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"]
+    wcs.wcs.crval = [150.123456789012345, 2.98765432109876]
+    wcs.wcs.crpix = [1234.5678901234567, 987.65432109876543]
+    wcs.wcs.cd = [[-5.5e-5, 1.234567890123e-7], [1.1e-7, 5.5e-5]]
+    wcs.wcs.set()
+    canonical = canonical_wcs(wcs)
+    assert canonical.wcs.crpix[0] != wcs.wcs.crpix[0]  # the digits a round trip drops
+    for dx, dy in [(1, 0), (100, 37), (1233, 986), (-7, 2048)]:
+        assert _is_canonical(shifted_wcs(canonical, dx, dy, from_canonical=True)), (dx, dy)

@@ -126,10 +126,10 @@ def shifted_wcs(
     it). Lookup-table distortions (``cpdis``, ``det2im``) are refused. The copy is put in
     :func:`canonical_wcs` form unless ``canonical=False``. When ``wcs`` is canonical
     already (``from_canonical=True``), only the new reference pixel can change in a round
-    trip (it is written with the fewest digits that give it back, so ``8914.4 - 812``
-    comes back as the double nearest 8102.4), so it alone is re-rounded that way: the
-    same result as the round trip (tested for TAN, SIP and TPV) at ~0.1 ms instead of
-    ~2.5 ms.
+    trip (it is written to ~14 digits, so ``8914.4 - 812`` comes back as the double
+    nearest 8102.4), so it alone is re-rounded, as astropy writes it: the same result as
+    the round trip (tested for TAN, SIP and TPV, and values of 17 digits) at ~0.2 ms
+    instead of ~2.5 ms.
     """
     from astropy.wcs import Sip
 
@@ -138,19 +138,13 @@ def shifted_wcs(
     out = wcs.deepcopy()
     out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
     if from_canonical:
-        header = out.wcs.to_header()  # the reference pixel as a round trip writes it
-        cards = {line[:8].strip(): line[10:].split("/")[0] for line in _cards(header)}
-        out.wcs.crpix = [float(cards["CRPIX1"]), float(cards["CRPIX2"])]
+        header = out.to_header(relax=True)  # the reference pixel as a round trip writes it
+        out.wcs.crpix = [float(header["CRPIX1"]), float(header["CRPIX2"])]
     if out.sip is not None:
         sip = out.sip
         out.sip = Sip(sip.a, sip.b, sip.ap, sip.bp, out.wcs.crpix)
     out.wcs.set()
     return canonical_wcs(out) if canonical and not from_canonical else out
-
-
-def _cards(header: str) -> list[str]:
-    """The 80-character cards of a FITS header string."""
-    return [header[i : i + 80] for i in range(0, len(header), 80)]
 
 
 def canonical_wcs(wcs: WCS) -> WCS:

@@ -361,12 +361,15 @@ _MAX_COMPRESSION = 1100
 
 
 def _check_same_wcs(wcs: WCS, exact: dict[str, Any]) -> None:
-    """Refuse a WCS given for this file whose CRPIX or CRVAL are not the file's."""
+    """Refuse a WCS given for this file whose CRPIX or CRVAL are not the file's (to the
+    ~14 digits a WCS keeps in canonical form)."""
     for key in ("CRPIX1", "CRPIX2", "CRVAL1", "CRVAL2"):
         axis = int(key[-1]) - 1
         given = float((wcs.wcs.crpix if key.startswith("CRPIX") else wcs.wcs.crval)[axis])
-        if key in exact and given != as_float(exact[key], key):
-            raise _fail(f"the WCS given for this file has another {key} ({given})")
+        if key in exact:
+            value = as_float(exact[key], key)
+            if not abs(given - value) <= 1e-11 * max(1.0, abs(value)):
+                raise _fail(f"the WCS given for this file has another {key} ({given})")
 
 
 def _check_plane_dims(fits_file: fitsio.FITS, names: list[str], shape: tuple[int, int]) -> None:
