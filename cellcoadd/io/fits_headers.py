@@ -2,15 +2,14 @@
 
 fitsio's ``read_header`` costs grow faster than the number of cards: 0.05 ms for 15, 0.5
 ms for 48, 12 ms for a DECam CCD's 255, which a survey build pays for every header of every
-exposure. The cards are 80-byte records between
-the HDU's header start and its data start (both from fitsio): read at once and parsed by
-fitsio's own card parser, they give the same keys and values (string values without their
-trailing blanks, as ``read_header`` gives them; tested on LSST and DES files, plain and
-tile-compressed) in ~2-4 ms. Headers that fitsio's card parser reads differently are
-left to ``read_header``: long strings continued on ``CONTINUE`` cards (CFITSIO joins them)
-and strings holding a quote (written ``''``; an empty string is read here). So are files
-whose bytes are not the FITS stream itself (a gzip-compressed file, which CFITSIO
-inflates in memory).
+exposure. The cards are the 80-byte records between the HDU's header start and its data
+start (both from fitsio): read at once and parsed by fitsio's own card parser, they give
+the same keys and values (string values without their trailing blanks, as ``read_header``
+gives them; tested on LSST and DES files, plain and tile-compressed) in ~2-4 ms. Headers
+that fitsio's card parser reads differently are left to ``read_header``: long strings
+continued on ``CONTINUE`` cards (CFITSIO joins them) and strings holding a quote (written
+``''``; an empty string is read here). So are files whose bytes are not the FITS stream
+itself (a gzip-compressed file, which CFITSIO inflates in memory).
 """
 
 from __future__ import annotations
