@@ -40,24 +40,25 @@ from common import format_table, idle_cores, machine_summary
 
 SKY_CENTER = (60.0, -30.0)
 PIXEL_SCALE = 0.2
-SKY = dict(pixel_scale=PIXEL_SCALE, cell_inner=150, cell_border=50, cells_per_patch=2)
+SKY = dict(pixel_scale=PIXEL_SCALE, cell_inner=150, cell_border=50)
 
 
-def _patch():
+def _patch(cells_per_patch: int = 2):
     from cellcoadd import SkyMap, SkyMapConfig
 
-    tract = SkyMap.from_centers([SKY_CENTER], SkyMapConfig(**SKY))[0]
+    config = SkyMapConfig(**SKY, cells_per_patch=cells_per_patch)
+    tract = SkyMap.from_centers([SKY_CENTER], config)[0]
     return tract.patch(tract.n_patches[0] // 2, tract.n_patches[1] // 2)
 
 
-def write_inputs(directory: Path, n: int, ccd: int) -> list[Path]:
+def write_inputs(directory: Path, n: int, ccd: int, cells_per_patch: int = 2) -> list[Path]:
     """``n`` noise-only exposure files covering the benchmark patch (reused if present)."""
     import galsim
     from common import exposure_wcs
 
     from cellcoadd import Exposure, write_exposure
 
-    patch = _patch()
+    patch = _patch(cells_per_patch)
     box = patch.outer_bbox
     ra, dec = patch.tract.pixel_to_sky(
         [(box.x_start + box.x_stop - 1) / 2], [(box.y_start + box.y_stop - 1) / 2]
@@ -92,7 +93,7 @@ def write_inputs(directory: Path, n: int, ccd: int) -> list[Path]:
     return paths
 
 
-def run_one(paths: list[str], executor: str, out: str) -> dict:
+def run_one(paths: list[str], executor: str, out: str, cells_per_patch: int = 2) -> dict:
     """One build in this (fresh) process; the measurements of that run."""
     from cellcoadd import BuildConfig, ExposureFile, build_patch, write
 
@@ -109,10 +110,14 @@ def run_one(paths: list[str], executor: str, out: str) -> dict:
             LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
             Client(cluster) as client,
         ):
-            coadd = build_patch(_patch(), sources, config, seed=1, progress=False, scheduler=client)
+            coadd = build_patch(
+                _patch(cells_per_patch), sources, config, seed=1, progress=False, scheduler=client
+            )
     else:
         workers = 2 if executor == "pool" else 1
-        coadd = build_patch(_patch(), sources, config, seed=1, progress=False, workers=workers)
+        coadd = build_patch(
+            _patch(cells_per_patch), sources, config, seed=1, progress=False, workers=workers
+        )
     write(coadd, out, overwrite=True)
     wall = time.perf_counter() - start_wall
     own = resource.getrusage(resource.RUSAGE_SELF)
@@ -128,11 +133,11 @@ def run_one(paths: list[str], executor: str, out: str) -> dict:
     }
 
 
-def measure(paths: list[Path], executor: str, workdir: Path) -> dict:
+def measure(paths: list[Path], executor: str, workdir: Path, cells_per_patch: int) -> dict:
     """:func:`run_one` in a fresh interpreter."""
     out = workdir / f"coadd-{executor}-{len(paths)}.h5"
     idle = idle_cores(1.0)
-    arguments = ([str(p) for p in paths], executor, str(out))
+    arguments = ([str(p) for p in paths], executor, str(out), cells_per_patch)
     code = (
         f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
         f"import bench_survey_patch as b; print(json.dumps(b.run_one(*{arguments!r})))"
@@ -153,25 +158,35 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="interleaved rounds")
     parser.add_argument("--dask", action="store_true", help="also run on a dask LocalCluster")
     parser.add_argument("--workdir", help="keep the exposure files here (default: temporary)")
+    parser.add_argument(
+        "--cells-per-patch",
+        type=int,
+        default=2,
+        help="inner cells per patch side (2: 16 cells with the border ring; the exposures "
+        "must cover the patch: 6 needs --ccd 1600)",
+    )
     args = parser.parse_args()
+    n_cells = len(_patch(args.cells_per_patch).cells)
     counts = [int(n) for n in args.exposures.split(",")]
     executors = ["serial", "pool"] + (["dask"] if args.dask else [])
     print(f"machine: {machine_summary()}")
     print(
-        f"job: patch of 16 cells (250 x 250 px, K = 3) from {counts} exposure files of "
+        f"job: patch of {n_cells} cells (250 x 250 px, K = 3) from {counts} exposure files of "
         f"{args.ccd} x {args.ccd} px, each covering the patch; inputs as ExposureFile sources"
     )
     with tempfile.TemporaryDirectory() as temporary:
         workdir = Path(args.workdir or temporary)
         workdir.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
-        paths = write_inputs(workdir, max(counts), args.ccd)
+        paths = write_inputs(workdir, max(counts), args.ccd, args.cells_per_patch)
         print(f"inputs: {max(counts)} files written in {time.perf_counter() - start:.1f} s")
         runs: dict[tuple[int, str], list[dict]] = {}
         for _ in range(args.repeats):
             for n in counts:
                 for executor in executors:
-                    runs.setdefault((n, executor), []).append(measure(paths[:n], executor, workdir))
+                    runs.setdefault((n, executor), []).append(
+                        measure(paths[:n], executor, workdir, args.cells_per_patch)
+                    )
     rows = []
     summary: dict[tuple[int, str], dict] = {}
     for (n, executor), results in runs.items():
