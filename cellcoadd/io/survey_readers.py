@@ -18,7 +18,6 @@ point, an unnamed mask bit, unusable pixels) is a
 from __future__ import annotations
 
 import os
-import re
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -33,6 +32,7 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io.mef_file import MefFile, open_mef
 from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
+from cellcoadd.io.wcs_header import WCS_KEYWORD
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf import PiffPsf, PsfexPsf
@@ -64,27 +64,16 @@ class _Meta:
 
 
 #: Keywords of a tile-compressed HDU's table header that are not the image's.
-#: Keywords that can take part in an image's celestial WCS: wcslib's (any alternate
-#: letter), SIP, distortion tables, and the dates and observatory position wcslib's fixes
-#: read. astropy verifies every card it is given (~20 us each: 6 ms for a DECam CCD's 255
-#: cards), so the others are left out; the WCS is the same (tested on DES TPV, LSST SIP).
-_WCS_KEY = re.compile(
-    r"(WCSAXES|WCSNAME|(CTYPE|CUNIT|CRPIX|CRVAL|CDELT|CROTA|CRDER|CSYER|CNAME)\d+"
-    r"|(CD|PC|PV|PS)\d+_\d+|LONPOLE|LATPOLE|RADESYS|EQUINOX)[A-Z]?"
-    r"|RADECSYS|EPOCH|(A|B|AP|BP)_(ORDER|DMAX|\d+_\d+)|(CPDIS|CPERR|DP|DQ)\d+|D2IM\w*|AXISCORR"
-    r"|(MJD|DATE)-(OBS|AVG|BEG|END)|MJDREF[IF]?|DATEREF|TIMESYS|TIMEUNIT|OBSGEO-[XYZLBH]"
-    r"|OBS-(LAT|LONG|ELEV)|RESTFRQ|RESTWAV|SPECSYS|SSYSOBS|VELOSYS|ZSOURCE|VELANGL"
-)
 
 
 def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Header:
-    """The image's WCS cards as astropy sees them (:data:`_WCS_KEY`; compression
+    """The image's WCS cards as astropy sees them (:data:`WCS_KEYWORD`; compression
     keywords dropped)."""
     compressed = "ZIMAGE" in header
     cards = []
     for record in header.records():
         name = str(record.get("name") or "").upper()
-        if (compressed and name.startswith("Z")) or not _WCS_KEY.fullmatch(name):
+        if (compressed and name.startswith("Z")) or not WCS_KEYWORD.fullmatch(name):
             continue
         try:
             cards.append(fits.Card.fromstring(record["card_string"]))
