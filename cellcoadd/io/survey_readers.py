@@ -63,9 +63,6 @@ class _Meta:
     background: int | None
 
 
-#: Keywords of a tile-compressed HDU's table header that are not the image's.
-
-
 def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Header:
     """The image's WCS cards as astropy sees them (:data:`WCS_KEYWORD`; compression
     keywords dropped)."""
