@@ -46,7 +46,12 @@ def read_header(hdu: Any, descriptor: int | None) -> fitsio.FITSHDR:
         return hdu.read_header()
     raw = os.pread(descriptor, stop - start, start)
     cards = _cards(raw) if len(raw) == stop - start and not len(raw) % CARD else None
-    return hdu.read_header() if cards is None else RawHeader(cards)
+    if cards is not None:
+        try:
+            return RawHeader(cards)
+        except Exception:  # a card fitsio's parser refuses: left to CFITSIO
+            pass
+    return hdu.read_header()
 
 
 def _cards(raw: bytes) -> list[str] | None:
