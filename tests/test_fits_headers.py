@@ -197,3 +197,45 @@ def test_an_exposure_file_wcs_from_its_cards_alone_is_the_same(tmp_path):
     _, (_, state_a, text_a) = a.__reduce__()[:2]
     _, (_, state_b, text_b) = b.__reduce__()[:2]
     assert text_a == text_b and state_a == state_b
+
+
+def test_damaged_survey_headers_are_read_or_refused_naming_the_file(survey_files, tmp_path):
+    """Bytes changed anywhere in the headers (printable or not): the file is described and
+    loaded, or refused with a CellCoaddFormatError naming it; nothing else escapes (a
+    byte that is not ASCII used to escape from fitsio as a UnicodeDecodeError)."""
+    import logging
+    import random
+
+    from cellcoadd.errors import CellCoaddFormatError
+    from cellcoadd.geometry.box import Box
+
+    box = Box(x_start=0, x_stop=40, y_start=0, y_stop=40)
+    refused = 0
+    for original in survey_files[:1] + [
+        p for p in survey_files if p.name.endswith("p1_immasked.fits")
+    ]:
+        layout = DES_LAYOUT if "immasked" in original.name else LSST_LAYOUT
+        raw = original.read_bytes()
+        span = 23040 if layout is DES_LAYOUT else 20160
+        rng = random.Random(7)
+        for number in range(24):
+            damaged = bytearray(raw)
+            for _ in range(rng.randint(1, 6)):
+                damaged[rng.randrange(span)] = (
+                    rng.randrange(128, 256) if number % 3 == 0 else rng.randrange(32, 127)
+                )
+            path = tmp_path / f"{number}_{original.name}"
+            path.write_bytes(bytes(damaged))
+            source = MefExposureFile(path, layout, PSF, zero_point=30.0)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    logging.disable(logging.WARNING)
+                    source.load_described(source.header(), box)
+            except CellCoaddFormatError as err:
+                assert path.name in str(err)
+                refused += 1
+            finally:
+                logging.disable(logging.NOTSET)
+            path.unlink()
+    assert refused > 0

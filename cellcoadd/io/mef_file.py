@@ -34,28 +34,34 @@ class MefFile:
         return CellCoaddFormatError(self.path, where + problem)
 
     def label(self, index: int) -> str:
-        name = self.fits[index].get_extname()
+        try:
+            name = self.fits[index].get_extname()
+        except (OSError, ValueError):  # a damaged header: the number alone
+            return str(index)
         return f"{index} ({name})" if name else str(index)
 
     def header(self, index: int) -> fitsio.FITSHDR:
         if index not in self._cache:
             try:
                 self._cache[index] = read_header(self.fits[index], self.descriptor)
-            except OSError as err:
+            except (OSError, ValueError) as err:  # ValueError: e.g. bytes that are not ASCII
                 raise self.fail(index, f"cannot read the header ({err})") from None
         return self._cache[index]
 
     def index(self, ref: HduRef, what: str) -> int:
         """HDU number of ``ref``: a number, an EXTNAME, else an EXTTYPE (no case)."""
-        count = len(self.fits)
+        try:  # fitsio lists the HDUs when first asked
+            count = len(self.fits)
+            names = [self.fits[i].get_extname().strip().upper() for i in range(count)]
+        except (OSError, ValueError) as err:
+            raise CellCoaddFormatError(self.path, f"cannot read the HDUs ({err})") from None
         if isinstance(ref, int):
             if 0 <= ref < count:
                 return ref
         else:
             wanted = ref.strip().upper()
-            for i in range(count):
-                if self.fits[i].get_extname().strip().upper() == wanted:
-                    return i
+            if wanted in names:
+                return names.index(wanted)
             for i in range(count):
                 if str(self.header(i).get("EXTTYPE", "")).strip().upper() == wanted:
                     return i
