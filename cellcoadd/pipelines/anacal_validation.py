@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cellcoadd.pipelines.bias_table import summary_fields
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear.anacal_adapter import paired_bias
 
@@ -30,22 +31,11 @@ def summarize_anacal(
         raise ValueError("no AnaCal pair could be measured")
     bias = paired_bias(plus, minus, true_g=settings.sim.shear[0], group=group)
     kept = good_plus & good_minus
-    expected_inputs = settings.sim.n_epochs if settings.mode == "coadd" else 1
+    cpu = float(catalogue.cpu_seconds.sum())
     return {
         **bias,
-        "n_objects": len(catalogue),
-        "n_used": int(kept.sum()),
-        "n_used_plus": int(good_plus.sum()),
-        "n_used_minus": int(good_minus.sum()),
-        "cpu_seconds": float(catalogue.cpu_seconds.sum()),
-        "mode": settings.mode,
-        "method": "anacal",
-        "settings": settings.model_dump(mode="json"),
+        **summary_fields(settings, catalogue, good_plus, good_minus, cpu),
         "R11": float(np.mean(plus["de1_dg1"][kept])),
         "R22": float(np.mean(plus["de2_dg2"][kept])),
         "s2n_median": float(np.median(plus["s2n"][kept])),
-        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
-        "paper_m1": float("nan"),
-        "paper_m1_err": float("nan"),
     }

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cellcoadd.pipelines.bias_table import paper_value
+from cellcoadd.pipelines.bias_table import summary_fields
 from cellcoadd.pipelines.stamp_pairs import bfd_noise_sigma, bfd_templates
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear import bfd
@@ -87,11 +87,10 @@ def bfd_posterior(settings: ValidationSettings, catalogue: PairCatalogue) -> Bfd
 
 
 def summarize_bfd(
-    settings: ValidationSettings, catalogue: PairCatalogue, group: int, expected_inputs: int
+    settings: ValidationSettings, catalogue: PairCatalogue, group: int
 ) -> dict[str, Any]:
     """Biases and diagnostics of a catalogue of BFD pairs (``group``: jackknife rows
-    removed together, 2 for ring partners; ``expected_inputs``: epochs a complete
-    measurement uses)."""
+    removed together, 2 for ring partners)."""
     start = time.process_time()
     posterior = bfd_posterior(settings, catalogue)
     bias = bfd.paired_bias(
@@ -102,24 +101,13 @@ def summarize_bfd(
     sel_plus, sel_minus = posterior.plus.selected, posterior.minus.selected
     plus, minus = catalogue.plus["bfd"], catalogue.minus["bfd"]
     good = (plus["flags"] == 0) & (minus["flags"] == 0)
-    paper = paper_value("bfd", settings.mode)
+    cpu = float(catalogue.cpu_seconds.sum()) + prior_cpu
     return {
         **bias,
-        "n_objects": len(catalogue),
-        "n_used": int(np.sum(sel_plus & sel_minus)),
-        "n_used_plus": int(sel_plus.sum()),
-        "n_used_minus": int(sel_minus.sum()),
-        "cpu_seconds": float(catalogue.cpu_seconds.sum()) + prior_cpu,
+        **summary_fields(settings, catalogue, sel_plus, sel_minus, cpu),
         "prior_cpu_seconds": prior_cpu,
-        "mode": settings.mode,
-        "method": "bfd",
-        "settings": settings.model_dump(mode="json"),
         "n_templates": posterior.n_templates,
         "flux_snr_median": float(np.median(plus["snr"][good])),
-        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs)),
-        "paper_m1": paper[0],
-        "paper_m1_err": paper[1],
     }
 
 

@@ -8,7 +8,14 @@ additions, without a paper value.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from cellcoadd.pipelines.validation_settings import ValidationSettings, expected_inputs
+
+if TYPE_CHECKING:
+    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 #: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1, by mode. The
 #: paper has no single-epoch row ("single" is our extra reference, the first epoch alone).
@@ -34,6 +41,33 @@ PAPER_TABLE1_ROWS: dict[tuple[str, str], tuple[float, float]] = {
 def paper_value(method: str, mode: str) -> tuple[float, float]:
     """The paper's ``(m1, error)`` for a method and mode, NaNs when Table 1 has no row."""
     return PAPER_TABLE1_ROWS.get((method, mode), (float("nan"), float("nan")))
+
+
+def summary_fields(
+    settings: ValidationSettings,
+    catalogue: PairCatalogue,
+    kept_plus: np.ndarray,
+    kept_minus: np.ndarray,
+    cpu_seconds: float,
+) -> dict[str, Any]:
+    """What every method's summary reports besides its biases: the counts of pairs
+    (``kept_*``: the members its selection kept), CPU seconds, mode, method, settings,
+    noise, incomplete coadds and the paper's value."""
+    paper = paper_value(settings.method, settings.mode)
+    return {
+        "n_objects": len(catalogue),
+        "n_used": int(np.sum(kept_plus & kept_minus)),
+        "n_used_plus": int(np.sum(kept_plus)),
+        "n_used_minus": int(np.sum(kept_minus)),
+        "cpu_seconds": float(cpu_seconds),
+        "mode": settings.mode,
+        "method": settings.method,
+        "settings": settings.model_dump(mode="json"),
+        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
+        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs(settings))),
+        "paper_m1": paper[0],
+        "paper_m1_err": paper[1],
+    }
 
 
 #: Requirement on |m| of ambitious surveys quoted by the paper.

@@ -41,6 +41,7 @@ from cellcoadd.pipelines.bias_table import (
     PAPER_TABLE1_ROWS,
     format_bias_table,
     paper_value,
+    summary_fields,
 )
 from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
 from cellcoadd.pipelines.validation_settings import (
@@ -49,18 +50,13 @@ from cellcoadd.pipelines.validation_settings import (
     Mode,
     ValidationSettings,
     check_method_mode,
+    expected_inputs,
     stamp_cell,
 )
 from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
 from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
-
-
-def expected_inputs(settings: ValidationSettings) -> int:
-    """Epochs a measurement should use: all of them, or one in single mode."""
-    return 1 if settings.mode == "single" else settings.sim.n_epochs
-
 
 #: Keys of :func:`validate_shear`'s result that are always JSON-serialisable.
 RESULT_KEYS: tuple[str, ...] = (
@@ -213,9 +209,7 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     if len(catalogue) < 2:
         raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
     if settings.method == "bfd":
-        return summarize_bfd(
-            settings, catalogue, _group(settings, catalogue), expected_inputs(settings)
-        )
+        return summarize_bfd(settings, catalogue, _group(settings, catalogue))
     if settings.method == "anacal":
         return summarize_anacal(settings, catalogue, _group(settings, catalogue))
     plus, minus = catalogue.plus, catalogue.minus
@@ -231,25 +225,14 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     kept_minus = PAPER_CUTS(minus["noshear"])
     response = shear_response(plus, step=settings.step, selection=PAPER_CUTS)
     s2n = plus["noshear"]["s2n"][np.isfinite(plus["noshear"]["s2n"])]
-    paper = paper_value("metacal", settings.mode)
+    cpu = float(catalogue.cpu_seconds.sum())
     return {
         **bias,
-        "n_objects": len(catalogue),
-        "n_used": int(np.sum(kept_plus & kept_minus)),
-        "n_used_plus": int(kept_plus.sum()),
-        "n_used_minus": int(kept_minus.sum()),
-        "cpu_seconds": float(catalogue.cpu_seconds.sum()),
-        "mode": settings.mode,
-        "method": settings.method,
-        "settings": settings.model_dump(mode="json"),
+        **summary_fields(settings, catalogue, kept_plus, kept_minus, cpu),
         "R11": float(response.R[0, 0]),
         "R22": float(response.R[1, 1]),
         "R_S11": float(response.R_S[0, 0]),
         "s2n_median": float(np.median(s2n)) if s2n.size else float("nan"),
-        "noise_sigma_median": float(np.median(catalogue.noise_sigma)),
-        "incomplete_coadds": int(np.sum(catalogue.n_inputs < expected_inputs(settings))),
-        "paper_m1": paper[0],
-        "paper_m1_err": paper[1],
     }
 
 

@@ -245,6 +245,11 @@ def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: in
     return inner
 
 
+def expected_inputs(settings: ValidationSettings) -> int:
+    """Epochs a measurement should use: all of them, or one in single mode."""
+    return 1 if settings.mode == "single" else settings.sim.n_epochs
+
+
 def stamp_cell(settings: ValidationSettings) -> Cell:
     """Cell ``(0, 0)`` of the one-cell sky map centred on the objects; its centre pixel
     ``(nx // 2, ny // 2)`` of the outer box is exactly at ``(sim.ra, sim.dec)``.
