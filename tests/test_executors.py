@@ -194,3 +194,27 @@ def test_a_dying_dask_worker_is_named_exactly(tiny, dask_client):
             patch, [*good, _killer(patch)], TINY_BUILD, progress=False, scheduler=dask_client
         )
     assert _named_cell(str(info.value)) == (0, 0)
+
+
+def test_a_dead_worker_names_every_cell_of_the_blocks_that_were_running(tiny):
+    """The pool fails every unfinished block at once; the one that died may be any of the
+    blocks the workers were running (the first unfinished ones): all their cells are named,
+    whichever finished first (this depended on timing when only the first was named)."""
+    from concurrent.futures import BrokenExecutor, Future
+
+    patch, _, _ = tiny
+    blocks = patch_module.blocks_of(patch.cells, 4)  # rows of 4 cells
+    futures = []
+    for number in range(len(blocks)):
+        future: Future = Future()
+        if number == 0:
+            future.set_result([])  # the first row was built
+        else:
+            future.set_exception(BrokenExecutor("a worker died"))
+        futures.append(future)
+    submitted = list(zip(futures, blocks, strict=True))
+    message = patch_module._died_message(submitted, BrokenExecutor("a worker died"), 2)
+    named = set(re.findall(r"\((-?\d+), (-?\d+)\)", message.split("BrokenExecutor")[0]))
+    running = {(str(c.index[0]), str(c.index[1])) for block in blocks[1:3] for c in block}
+    assert running <= named and _named_cell(message) == blocks[1][0].index
+    assert not {(str(c.index[0]), str(c.index[1])) for c in blocks[3]} & named

@@ -164,7 +164,8 @@ def _run_on(
             except CellBuildError:
                 raise
             except BrokenExecutor as err:
-                raise CellBuildError(_died_message(submitted, err)) from err
+                workers = int(getattr(pool, "_max_workers", 1))
+                raise CellBuildError(_died_message(submitted, err, workers)) from err
             except Exception as err:  # e.g. a result that could not be sent back
                 raise _cell_failed(cells[0], err) from err
             bar.update(len(cells))
@@ -231,21 +232,20 @@ def _replicate(client: Any, futures: list[Any]) -> None:
         client.replicate(futures)
 
 
-def _died_message(submitted: list[tuple[Future, list[Cell]]], err: BaseException) -> str:
+def _died_message(
+    submitted: list[tuple[Future, list[Cell]]], err: BaseException, workers: int
+) -> str:
     """Name the cell a dead worker process was building, as far as it can be known.
 
     A broken process pool fails every unfinished future at once without saying which
-    task killed its worker. Tasks start in submission order, so the earliest-submitted
-    unfinished block had started: its first cell is named, with the other cells of that
-    block and the first cells of the next unfinished blocks (one of which may have been
-    the task that died instead).
+    task killed its worker. Tasks start in submission order, so the task that died is one
+    of the ``workers`` earliest-submitted unfinished blocks: the first cell of the first
+    is named, with every other cell of those blocks.
     """
     unfinished = [cells for future, cells in submitted if _broken_or_pending(future)]
-    block = unfinished[0] if unfinished else submitted[0][1]
-    first = block[0]
-    suspects = [str(cell.index) for cell in block[1:]] + [
-        str(cells[0].index) for cells in unfinished[1:4]
-    ]
+    running = unfinished[: max(1, workers)] or [submitted[0][1]]
+    first = running[0][0]
+    suspects = [str(cell.index) for cells in running for cell in cells if cell is not first]
     after = f" or one built with or after it ({', '.join(suspects)})" if suspects else ""
     return (
         f"cell {first.index} of tract {first.tract} failed: a worker process died while "
