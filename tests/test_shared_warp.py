@@ -185,3 +185,31 @@ def test_block_sums_equal_each_cell_summing_alone():
         sums = block.cell(i)
         assert np.array_equal(sums.planes, naive[i]), i
         assert np.array_equal(sums.mask, naive_mask[i]), i
+
+
+def test_frames_hold_only_their_grid_nodes_and_share_interpolation_weights(patch, exposures):
+    # every exposure mapped over a patch is held until the patch is built: hundreds of them
+    grids: dict = {}
+    frames = [
+        exposure_frame(patch.tract.wcs, patch.outer_bbox, exposure, 1e-3, grids)
+        for exposure in exposures
+    ]
+    for frame in frames:
+        assert frame.mapping is not None
+        for name in ("x", "y", "area_ratio"):
+            deferred = frame.mapping.__dict__["_" + name]
+            # the node values alone, in an array of their own (not a view keeping the dense
+            # grid of check points, or the offset positions of the area ratio, alive)
+            n_rows = int(deferred.rows.first.max()) + 4
+            n_cols = int(deferred.cols.first.max()) + 4
+            assert deferred.nodes.shape == (n_rows, n_cols)
+            assert deferred.nodes.base is None
+    same_region = [(a, b) for a, b in itertools.combinations(frames, 2) if a.region == b.region]
+    assert same_region
+    for a, b in same_region:
+        assert a.mapping.__dict__["_x"].rows.weights is b.mapping.__dict__["_y"].rows.weights
+    # and sharing changes no value
+    for frame, exposure in zip(frames, exposures, strict=True):
+        alone = exposure_frame(patch.tract.wcs, patch.outer_bbox, exposure, 1e-3)
+        for name in ("x", "y", "area_ratio"):
+            assert np.array_equal(getattr(alone.mapping, name), getattr(frame.mapping, name))

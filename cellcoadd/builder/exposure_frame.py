@@ -96,7 +96,11 @@ def projected_valid_box(tract_wcs: WCS, exposure: Exposure | ExposureHeader) -> 
 
 
 def exposure_frame(
-    tract_wcs: WCS, area: Box, exposure: Exposure | ExposureHeader, tolerance: float
+    tract_wcs: WCS,
+    area: Box,
+    exposure: Exposure | ExposureHeader,
+    tolerance: float,
+    grid_cache: dict | None = None,
 ) -> ExposureFrame:
     """Map the part of ``area`` (tract pixels) that ``exposure`` may serve, once.
 
@@ -112,6 +116,10 @@ def exposure_frame(
         Its WCS and valid box are used.
     tolerance : float
         Position tolerance of the mapping, exposure px (``BuildConfig.mapping_tolerance``).
+    grid_cache : dict, optional
+        Interpolation grids shared by the frames of several exposures (see
+        :func:`~cellcoadd.builder.mapping.map_box`): exposures covering the same part of
+        the area then hold one copy of the per-pixel interpolation weights between them.
     """
     projected = projected_valid_box(tract_wcs, exposure)
     if projected is None:
@@ -120,7 +128,7 @@ def exposure_frame(
         return ExposureFrame(_EMPTY, None)
     region = projected.intersection(area)
     try:
-        mapping = grid_mapping(tract_wcs, region, exposure.wcs, tolerance)
+        mapping = grid_mapping(tract_wcs, region, exposure.wcs, tolerance, grid_cache=grid_cache)
     except WCS_ERRORS:
         mapping = None
     return ExposureFrame(region, mapping)

@@ -136,7 +136,7 @@ class PixelMapping:
         def part(name: str) -> np.ndarray | _Deferred:
             value = self.__dict__["_" + name]
             if isinstance(value, _Deferred):
-                return _Deferred(value.values, value.rows.sliced(rows), value.cols.sliced(cols))
+                return _Deferred(value.nodes, value.rows.sliced(rows), value.cols.sliced(cols))
             return value[rows, cols]
 
         return PixelMapping(
@@ -293,23 +293,32 @@ def _interpolate_nodes(
     return out
 
 
+def _nodes_of(values: np.ndarray) -> np.ndarray:
+    """The values at the grid nodes, ``values[::2, ::2]`` of the dense grid (its odd indices
+    are the check points between nodes), as a contiguous array of their own."""
+    return np.ascontiguousarray(values[::2, ::2])
+
+
 def _interpolate(values: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
-    """Interpolate from the grid nodes, ``values[::2, ::2]`` (the odd indices of the dense
-    grid are the check points between nodes), to the positions of ``rows`` x ``cols``."""
-    nodes = np.ascontiguousarray(values[::2, ::2])
-    return _interpolate_nodes(nodes, rows.first, rows.weights, cols.first, cols.weights)
+    """Interpolate from the nodes of the dense grid ``values`` to the positions of
+    ``rows`` x ``cols``."""
+    return _interpolate_nodes(_nodes_of(values), rows.first, rows.weights, cols.first, cols.weights)
 
 
 @dataclass(frozen=True, eq=False)
 class _Deferred:
-    """A pixel-level quantity interpolated from its grid values when first needed."""
+    """A pixel-level quantity interpolated from its values at the grid nodes when first
+    needed. Only the nodes are kept (not the check points, nor the arrays of positions
+    offset for the area ratio they were computed with): a quarter of the dense grid,
+    which is what every exposure mapped over a patch holds until the patch is built."""
 
-    values: np.ndarray
+    nodes: np.ndarray
     rows: _CubicBasis
     cols: _CubicBasis
 
     def evaluate(self) -> np.ndarray:
-        return _interpolate(self.values, self.rows, self.cols)
+        rows, cols = self.rows, self.cols
+        return _interpolate_nodes(self.nodes, rows.first, rows.weights, cols.first, cols.weights)
 
 
 def _frozen_mapping(
@@ -387,9 +396,9 @@ def _try_grid(
     pixel_basis_x, pixel_basis_y = along_x.pixel_basis, along_y.pixel_basis
     mapping = _frozen_mapping(
         box,
-        _Deferred(exact_x, pixel_basis_y, pixel_basis_x),
-        _Deferred(exact_y, pixel_basis_y, pixel_basis_x),
-        _Deferred(exact_area, pixel_basis_y, pixel_basis_x),
+        _Deferred(_nodes_of(exact_x), pixel_basis_y, pixel_basis_x),
+        _Deferred(_nodes_of(exact_y), pixel_basis_y, pixel_basis_x),
+        _Deferred(_nodes_of(exact_area), pixel_basis_y, pixel_basis_x),
         max_error,
         step,
     )

@@ -354,9 +354,11 @@ def build_patch(
     near = exposures_near_cells(cells, headers)
     area = patch.outer_bbox
     tract_wcs = patch.tract.wcs
-    # each exposure mapped once onto the patch, from its header: shared by every block
+    # each exposure mapped once onto the patch, from its header: shared by every block;
+    # exposures covering the same part of the patch share their interpolation weights
+    grids: dict = {}
     framed = [
-        (item, exposure_frame(tract_wcs, area, header, config.mapping_tolerance))
+        (item, exposure_frame(tract_wcs, area, header, config.mapping_tolerance, grids))
         for item, header in zip(inputs, headers, strict=True)
     ]
     client = pool = None
