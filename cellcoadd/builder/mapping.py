@@ -299,10 +299,14 @@ def _nodes_of(values: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(values[::2, ::2])
 
 
+def _from_nodes(nodes: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
+    """Interpolate from the values at the grid nodes to the positions of ``rows`` x ``cols``."""
+    return _interpolate_nodes(nodes, rows.first, rows.weights, cols.first, cols.weights)
+
+
 def _interpolate(values: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
-    """Interpolate from the nodes of the dense grid ``values`` to the positions of
-    ``rows`` x ``cols``."""
-    return _interpolate_nodes(_nodes_of(values), rows.first, rows.weights, cols.first, cols.weights)
+    """:func:`_from_nodes` of the nodes of the dense grid ``values``."""
+    return _from_nodes(_nodes_of(values), rows, cols)
 
 
 @dataclass(frozen=True, eq=False)
@@ -317,8 +321,7 @@ class _Deferred:
     cols: _CubicBasis
 
     def evaluate(self) -> np.ndarray:
-        rows, cols = self.rows, self.cols
-        return _interpolate_nodes(self.nodes, rows.first, rows.weights, cols.first, cols.weights)
+        return _from_nodes(self.nodes, self.rows, self.cols)
 
 
 def _frozen_mapping(
