@@ -27,8 +27,8 @@ import numpy as np
 from common import format_table, interleaved_medians, machine_summary
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT
-from cellcoadd.io.survey_readers import MefExposureFile
+from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT
+from cellcoadd.io.exposures.survey_readers import MefExposureFile
 from cellcoadd.model.psf import GalSimPsf
 
 DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"

@@ -60,8 +60,8 @@ _EXPORTS: dict[str, str] = {
     "ExposureFile": "cellcoadd.io",
     "MefExposureFile": "cellcoadd.io",
     "MefLayout": "cellcoadd.io",
-    "to_lsst_images": "cellcoadd.io.lsst_images",
-    "from_lsst_images": "cellcoadd.io.lsst_images",
+    "to_lsst_images": "cellcoadd.io.foreign.lsst_images",
+    "from_lsst_images": "cellcoadd.io.foreign.lsst_images",
     "ExposureSource": "cellcoadd.model.sources",
     "build_cell": "cellcoadd.builder",
     "build_patch": "cellcoadd.builder",
@@ -175,7 +175,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         write,
         write_exposure,
     )
-    from cellcoadd.io.lsst_images import from_lsst_images, to_lsst_images
+    from cellcoadd.io.foreign.lsst_images import from_lsst_images, to_lsst_images
     from cellcoadd.model.build_config import BuildConfig
     from cellcoadd.model.cell_coadd import CellCoadd
     from cellcoadd.model.exposure import Exposure

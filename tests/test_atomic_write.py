@@ -1,4 +1,4 @@
-"""Atomic writes (cellcoadd.io.atomic): concurrent writers of a new file without overwrite
+"""Atomic writes (cellcoadd.io._files.atomic): concurrent writers of a new file without overwrite
 give one file and one clear error; a failed write leaves the previous file and no
 temporary file."""
 
@@ -13,9 +13,10 @@ import pytest
 from coadd_factory import SMALL, make_patch
 from exposure_factory import make_exposure
 
-from cellcoadd.io import api, exposure_io
-from cellcoadd.io.atomic import atomic_write
-from cellcoadd.io.exposure_io import read_exposure, write_exposure
+from cellcoadd.io import api
+from cellcoadd.io._files.atomic import atomic_write
+from cellcoadd.io.exposures import exposure_io
+from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 
 #: Seconds a writer waits for the other one before giving up (never reached when correct).
 _TIMEOUT = 120
@@ -32,7 +33,7 @@ def _race_writer(kind: str, target: str, seed: int, barrier, results) -> None:
     and publishing it) waits for the other writer, so both have passed the up-front
     existence check before either publishes.
     """
-    from cellcoadd.io import atomic
+    from cellcoadd.io._files import atomic
 
     fsync = atomic._fsync_file
 

@@ -26,7 +26,7 @@ from cellcoadd.builder.patch import build_patch
 from cellcoadd.cli.storage import convert_command, info_command, patch_summary
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import api
-from cellcoadd.io.cell_coadds_layout import is_cell_coadds_file
+from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.model.units import NJY_ZERO_POINT

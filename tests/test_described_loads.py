@@ -22,9 +22,9 @@ from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io import read_exposure, write_exposure
-from cellcoadd.io.exposure_source import ExposureFile
-from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT
-from cellcoadd.io.survey_readers import MefExposureFile
+from cellcoadd.io.exposures.exposure_source import ExposureFile
+from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT
+from cellcoadd.io.exposures.survey_readers import MefExposureFile
 from cellcoadd.model.sources import DescribedSource, describe
 
 BOXES = [

@@ -26,7 +26,7 @@ import cellcoadd.builder.patch as patch_module
 from cellcoadd import BuildConfig, CellBuildError, Exposure, build_patch
 from cellcoadd.cli.main import main as cli_main
 from cellcoadd.io import api
-from cellcoadd.io.exposure_io import write_exposure
+from cellcoadd.io.exposures.exposure_io import write_exposure
 
 _DATE = re.compile(rb"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d")
 

@@ -134,7 +134,7 @@ def test_patch_from_sources_is_identical_for_any_executor(tract):
 
 def test_exposure_files_load_cutouts(tmp_path, tract):
     from cellcoadd.io import read_exposure, write_exposure
-    from cellcoadd.io.exposure_source import ExposureFile
+    from cellcoadd.io.exposures.exposure_source import ExposureFile
 
     cell = tract.cell(1, 1)
     exposure = _exposures(cell.center_sky, n=2)[1]  # SIP, rotated, a bad row

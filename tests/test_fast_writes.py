@@ -24,16 +24,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import (
-    api,
-    fits_direct,
-    fits_format,
-    hdf5_chunks,
-    hdf5_format,
-    parallel,
-    writeback,
-)
-from cellcoadd.io.hdf5_chunks import ChunkScratch, fletcher32
+from cellcoadd.io import api
+from cellcoadd.io._files import parallel, writeback
+from cellcoadd.io._fits import direct as fits_direct
+from cellcoadd.io.coadd import fits_format, hdf5_chunks, hdf5_format
+from cellcoadd.io.coadd.hdf5_chunks import ChunkScratch, fletcher32
 
 
 def _reference_fletcher32(data: bytes) -> int:

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 from coadd_factory import make_patch
 
-from cellcoadd.io import api, fits_direct, fits_format
-from cellcoadd.io.fits_checksums import stabilise_fits_checksums
+from cellcoadd.io import api
+from cellcoadd.io._fits import direct as fits_direct
+from cellcoadd.io._fits.checksums import stabilise_fits_checksums
+from cellcoadd.io.coadd import fits_format
 
 _VALUES = [
     0,

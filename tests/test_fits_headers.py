@@ -20,9 +20,9 @@ from test_survey_readers import (
     write_lsst,
 )
 
-from cellcoadd.io.fits_headers import SHORT, RawHeader, read_header
-from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT
-from cellcoadd.io.survey_readers import MefExposureFile
+from cellcoadd.io._fits.headers import SHORT, RawHeader, read_header
+from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT
+from cellcoadd.io.exposures.survey_readers import MefExposureFile
 
 
 def _same_header(fast: fitsio.FITSHDR, slow: fitsio.FITSHDR) -> None:
@@ -179,7 +179,7 @@ def test_an_exposure_file_wcs_from_its_cards_alone_is_the_same(tmp_path):
 
     from cellcoadd.geometry.wcs_utils import canonical_wcs
     from cellcoadd.io import write_exposure
-    from cellcoadd.io.wcs_header import read_wcs
+    from cellcoadd.io._fits.wcs_header import read_wcs
     from cellcoadd.model.wcs_codec import apply_wcs_exact_keywords
 
     exposure = dataclasses.replace(make_exposure((359.1, -31.0), shape=(120, 140)), wcs=sip_wcs())

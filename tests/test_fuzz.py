@@ -28,10 +28,11 @@ from hypothesis import strategies as st
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.io import api, hdf5_format
-from cellcoadd.io.exposure_io import read_exposure, write_exposure
-from cellcoadd.io.fits_checksums import DATACRC
-from cellcoadd.io.fits_format import extname
+from cellcoadd.io import api
+from cellcoadd.io._fits.checksums import DATACRC
+from cellcoadd.io.coadd import hdf5_format
+from cellcoadd.io.coadd.fits_format import extname
+from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf_profiles import VaryingPsf

@@ -26,9 +26,11 @@ from cellcoadd.cli.build import build as build_command
 from cellcoadd.cli.demo import demo as demo_command
 from cellcoadd.cli.storage import info_command
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import api, atomic, format_version
-from cellcoadd.io.exposure_io import read_exposure, write_exposure
-from cellcoadd.io.format_version import sha256_hex
+from cellcoadd.io import api
+from cellcoadd.io._files import atomic
+from cellcoadd.io.coadd import format_version
+from cellcoadd.io.coadd.format_version import sha256_hex
+from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import PatchCoadd
 

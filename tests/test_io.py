@@ -26,7 +26,8 @@ from kill_writer import kill_mid_write
 from cellcoadd.cli.storage import convert_command, info_command, schemas_command
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.config import SkyMapConfig
-from cellcoadd.io import api, fits_format, format_version, hdf5_format
+from cellcoadd.io import api
+from cellcoadd.io.coadd import fits_format, format_version, hdf5_format
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 

@@ -27,7 +27,7 @@ except ImportError as err:
 
 import cellcoadd
 from cellcoadd.errors import CellCoaddFormatError, InvalidCoaddError
-from cellcoadd.io.lsst_images import from_lsst_images, to_lsst_images
+from cellcoadd.io.foreign.lsst_images import from_lsst_images, to_lsst_images
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 
 PLANES = ("image", "mask", "variance", "mfrac")

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from cellcoadd import BuildConfig
 from cellcoadd.cli.main import cli
 from cellcoadd.errors import CellCoaddFormatError, ConfigError
-from cellcoadd.io.manifest_io import build_config_toml, read_build_config, read_manifest
+from cellcoadd.io.exposures.manifest_io import build_config_toml, read_build_config, read_manifest
 
 TOML = """
 [[exposures]]

@@ -20,7 +20,7 @@ from exposure_factory import make_exposure, make_wcs
 import cellcoadd.builder.exposure_frame as frame_module
 import cellcoadd.builder.select as select_module
 from cellcoadd import Box, Exposure, ExposureError, build_patch
-from cellcoadd.io.exposure_io import write_exposure
+from cellcoadd.io.exposures.exposure_io import write_exposure
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from scipy import integrate, stats
 from cellcoadd.cli.simulate import simulate
 from cellcoadd.geometry import SkyMap
 from cellcoadd.geometry.wcs_utils import local_jacobian
-from cellcoadd.io.exposure_io import read_exposure
+from cellcoadd.io.exposures.exposure_io import read_exposure
 from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.pipelines.simulation_files import write_field_simulation
 from cellcoadd.sim import (

@@ -36,7 +36,7 @@ from cellcoadd.io import (
     read_lsst_exposure,
     read_mef_exposure,
 )
-from cellcoadd.io.mef_layout import DES_MASK_VALUES
+from cellcoadd.io.exposures.mef_layout import DES_MASK_VALUES
 from cellcoadd.model.psf import GalSimPsf, PsfexPsf
 
 DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"

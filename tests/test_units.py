@@ -18,8 +18,9 @@ from exposure_factory import make_exposure
 from pydantic import ValidationError
 
 from cellcoadd import BuildConfig, SkyMap, SkyMapConfig, build_cell
-from cellcoadd.io import api, format_version
-from cellcoadd.io.mef_layout import NJY_ZERO_POINT as LAYOUT_NJY_ZERO_POINT
+from cellcoadd.io import api
+from cellcoadd.io.coadd import format_version
+from cellcoadd.io.exposures.mef_layout import NJY_ZERO_POINT as LAYOUT_NJY_ZERO_POINT
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
 from cellcoadd.model.units import NJY_ZERO_POINT, legacy_units

@@ -19,8 +19,11 @@ from exposure_factory import make_exposure
 from kill_writer import kill_mid_write
 
 from cellcoadd import Exposure
-from cellcoadd.io import api, exposure_io, fits_direct, hdf5_chunks
-from cellcoadd.io.exposure_io import read_exposure, write_exposure
+from cellcoadd.io import api
+from cellcoadd.io._fits import direct as fits_direct
+from cellcoadd.io.coadd import hdf5_chunks
+from cellcoadd.io.exposures import exposure_io
+from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 
 TESTS = Path(__file__).parent
 

@@ -78,8 +78,12 @@ def build(
 
     from cellcoadd.builder import build_patch
     from cellcoadd.io.api import write
-    from cellcoadd.io.exposure_source import ExposureFile
-    from cellcoadd.io.manifest_io import read_build_config, read_manifest, sources_from_manifest
+    from cellcoadd.io.exposures.exposure_source import ExposureFile
+    from cellcoadd.io.exposures.manifest_io import (
+        read_build_config,
+        read_manifest,
+        sources_from_manifest,
+    )
     from cellcoadd.model.build_config import BuildConfig
     from cellcoadd.model.sources import describe
     from cellcoadd.pipelines.coverage import coverage_warning

@@ -26,7 +26,7 @@ def config_command(show: bool, check_path: str | None, as_json: bool) -> None:
       cellcoadd config --show --json > build.json
       cellcoadd config --check build.toml
     """
-    from cellcoadd.io.manifest_io import build_config_toml, read_build_config
+    from cellcoadd.io.exposures.manifest_io import build_config_toml, read_build_config
     from cellcoadd.model.build_config import BuildConfig
 
     if not show and check_path is None:

@@ -63,7 +63,7 @@ def skymap(
         the_map = SkyMap.rings(config)
     click.echo(the_map.summary())
     if out:
-        from cellcoadd.io.atomic import atomic_write_text  # loads cellcoadd.io: only here
+        from cellcoadd.io._files.atomic import atomic_write_text  # loads cellcoadd.io: only here
 
         atomic_write_text(out, the_map.to_json(), overwrite=True)
         click.echo(f"wrote {out}")

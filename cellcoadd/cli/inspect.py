@@ -113,7 +113,7 @@ def trim(
 
     from cellcoadd.geometry import SkyMap, flag_unique
     from cellcoadd.io import api as coadd_io
-    from cellcoadd.io.atomic import atomic_write
+    from cellcoadd.io._files.atomic import atomic_write
 
     with coadd_io.open(coadd_path) as stored:
         meta = stored.metadata

@@ -39,11 +39,11 @@ def check_output_path(out: str, overwrite: bool, *, directory_may_be_created: bo
     click.ClickException
         For a missing directory (unless the command creates it), an unknown extension, a
         CFITSIO-style name (``x[1].fits``, ``!x.fits``, see
-        :func:`cellcoadd.io.fits_paths.check_fits_path`) or an existing file without
+        :func:`cellcoadd.io._fits.paths.check_fits_path`) or an existing file without
         ``--overwrite``.
     """
+    from cellcoadd.io._fits.paths import check_fits_path
     from cellcoadd.io.api import file_format
-    from cellcoadd.io.fits_paths import check_fits_path
 
     directory = os.path.dirname(os.path.abspath(out))
     if not directory_may_be_created and not os.path.isdir(directory):

@@ -9,7 +9,7 @@ import click
 from tqdm import tqdm
 
 from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option
-from cellcoadd.io.atomic import atomic_write_text
+from cellcoadd.io._files.atomic import atomic_write_text
 from cellcoadd.pipelines.simulation_files import write_field_simulation, write_stamps
 from cellcoadd.sim import (
     DEMO_PATCH,

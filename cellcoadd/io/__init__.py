@@ -2,10 +2,14 @@
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io.api import convert, file_format, open, read, read_cell, write
-from cellcoadd.io.exposure_io import read_exposure, read_exposure_header, write_exposure
-from cellcoadd.io.exposure_source import ExposureFile
-from cellcoadd.io.manifest_io import read_build_config, read_manifest, sources_from_manifest
-from cellcoadd.io.mef_layout import (
+from cellcoadd.io.exposures.exposure_io import read_exposure, read_exposure_header, write_exposure
+from cellcoadd.io.exposures.exposure_source import ExposureFile
+from cellcoadd.io.exposures.manifest_io import (
+    read_build_config,
+    read_manifest,
+    sources_from_manifest,
+)
+from cellcoadd.io.exposures.mef_layout import (
     DES_BAD_MASK_BITS,
     DES_LAYOUT,
     LSST_BAD_MASK_BITS,
@@ -13,7 +17,7 @@ from cellcoadd.io.mef_layout import (
     MefLayout,
     ZeroPointKey,
 )
-from cellcoadd.io.survey_readers import (
+from cellcoadd.io.exposures.survey_readers import (
     MefExposureFile,
     read_des_exposure,
     read_lsst_exposure,

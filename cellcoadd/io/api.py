@@ -1,13 +1,13 @@
 """Reading and writing patch coadds: one API for the FITS and HDF5 layouts.
 
 The layout follows the file name: ``.fits`` and ``.fits.fz`` (fitsio), ``.h5`` and
-``.hdf5`` (h5py). Writes are atomic (:func:`cellcoadd.io.atomic.atomic_write`): the file is
+``.hdf5`` (h5py). Writes are atomic (:func:`cellcoadd.io._files.atomic.atomic_write`): the file is
 written to a hidden temporary file in the target directory
 (``.<name>.tmp-<host>-<pid>-<random>``), flushed to disk and renamed over the target, so
 readers see either the previous file or the complete new one. A process killed mid-write
 leaves such a temporary file behind; the next write of the same target removes it (see
-:mod:`cellcoadd.io.atomic`). A write that does not fit on the disk is refused before it starts,
-and one that fills the disk midway raises ``OSError(ENOSPC)`` naming the target and leaves
+:mod:`cellcoadd.io._files.atomic`). A write that does not fit on the disk is refused before it
+starts, and one that fills the disk midway raises ``OSError(ENOSPC)`` naming the target and leaves
 no file behind (except that HDF5 2.0 may crash the process instead; see
 ``docs/reliability.md``).
 
@@ -27,16 +27,16 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
 
-from cellcoadd.io.atomic import atomic_write, exists_error
-from cellcoadd.io.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
-from cellcoadd.io.cell_coadds_reader import CellCoaddsFile
-from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
-from cellcoadd.io.coadd_file import CoaddFile
-from cellcoadd.io.disk_space import check_free_space
-from cellcoadd.io.fits_checksums import stabilise_fits_checksums
-from cellcoadd.io.fits_format import FitsCoaddFile, check_fits_path, write_fits
-from cellcoadd.io.hdf5_format import Hdf5CoaddFile, write_hdf5
-from cellcoadd.io.read_checks import reading_errors
+from cellcoadd.io._files.atomic import atomic_write, exists_error
+from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._files.read_checks import reading_errors
+from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
+from cellcoadd.io._fits.checksums import stabilise_fits_checksums
+from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.fits_format import FitsCoaddFile, check_fits_path, write_fits
+from cellcoadd.io.coadd.hdf5_format import Hdf5CoaddFile, write_hdf5
+from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
+from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 

@@ -1,7 +1,7 @@
 """The list of input exposures of a build, as a file the command line reads.
 
 A manifest is a TOML, JSON or CSV file with one entry per exposure (see
-:mod:`cellcoadd.io.manifest_io` for the file forms and ``schemas/Manifest.v1.json``)::
+:mod:`cellcoadd.io.exposures.manifest_io` for the file forms and ``schemas/Manifest.v1.json``)::
 
     [[exposures]]
     path = "D00154912_r_c12_immasked.fits.fz"
@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 #: Built-in layouts: cellcoadd's own exposure files, the LSST single-detector files, the
 #: DES single-epoch files. A dict describes another multi-extension layout (the fields
-#: of :class:`cellcoadd.io.mef_layout.MefLayout`).
+#: of :class:`cellcoadd.io.exposures.mef_layout.MefLayout`).
 LayoutName = Literal["cellcoadd", "lsst", "des"]
 
 

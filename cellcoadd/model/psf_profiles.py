@@ -5,7 +5,7 @@ pre-pixel profiles in arcsec on the local tangent plane, see
 :mod:`cellcoadd.model.exposure`):
 
 * :class:`VaryingPsf`: a profile whose size and shape vary as polynomials over the
-  detector; :mod:`cellcoadd.io.psf_codec` stores it exactly in JSON.
+  detector; :mod:`cellcoadd.io.exposures.psf_codec` stores it exactly in JSON.
 * :class:`GridPsf`: any other callable, sampled on a grid of detector positions as
   oversampled pre-pixel stamps, interpolated bilinearly between grid nodes.
 """

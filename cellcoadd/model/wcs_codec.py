@@ -6,7 +6,7 @@ header cards *and* the numerical parameters at full double precision
 (:func:`wcs_exact_parameters`); :func:`wcs_from_record` rebuilds the WCS exactly.
 :func:`wcs_exact_keywords` / :func:`apply_wcs_exact_keywords` carry the same exact values
 keyed by FITS keyword, for files whose WCS lives in a header
-(:mod:`cellcoadd.io.wcs_header`). Lookup-table distortions (CPDIS/DET2IM) are refused.
+(:mod:`cellcoadd.io._fits.wcs_header`). Lookup-table distortions (CPDIS/DET2IM) are refused.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ from astropy.table import Table
 from cellcoadd.builder import build_patch
 from cellcoadd.geometry import flag_unique
 from cellcoadd.io import api as coadd_io
-from cellcoadd.io.atomic import atomic_write, atomic_write_text
+from cellcoadd.io._files.atomic import atomic_write, atomic_write_text
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.pipelines.coverage import count_inputs, coverage_warning

@@ -3,7 +3,7 @@
 The simulations (:mod:`cellcoadd.sim`) return in-memory results; these functions write
 them, for ``cellcoadd simulate`` and ``cellcoadd demo``. Each refuses to replace an
 existing file unless ``overwrite`` is set (raising :class:`FileExistsError`). Every file
-is written atomically (:func:`cellcoadd.io.atomic.atomic_write`).
+is written atomically (:func:`cellcoadd.io._files.atomic.atomic_write`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from pathlib import Path
 
 from astropy.table import Table
 
-from cellcoadd.io.atomic import atomic_write, atomic_write_text
-from cellcoadd.io.exposure_io import write_exposure
+from cellcoadd.io._files.atomic import atomic_write, atomic_write_text
+from cellcoadd.io.exposures.exposure_io import write_exposure
 from cellcoadd.sim.field import FieldSimulation
 from cellcoadd.sim.stamps import StampObject, stamps_truth_tables
 

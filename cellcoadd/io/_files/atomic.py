@@ -21,8 +21,8 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
-from cellcoadd.io.disk_space import disk_full_error
-from cellcoadd.io.writeback import EarlyWriteback
+from cellcoadd.io._files.disk_space import disk_full_error
+from cellcoadd.io._files.writeback import EarlyWriteback
 
 
 def exists_error(target: str | os.PathLike[str]) -> FileExistsError:
@@ -93,7 +93,7 @@ def atomic_write(
     replaced), and by ``os.replace`` otherwise. On any failure the temporary file is
     removed and a previous file at ``target`` is left unchanged. While ``write`` runs, the
     disk is asked to start writing what it has written so far
-    (:class:`~cellcoadd.io.writeback.EarlyWriteback`), so the final flush waits for less.
+    (:class:`~cellcoadd.io._files.writeback.EarlyWriteback`), so the final flush waits for less.
 
     Parameters
     ----------
@@ -123,7 +123,7 @@ def atomic_write(
         The target's directory does not exist.
     OSError
         ``errno.ENOSPC`` when the failure came from a full disk
-        (:func:`~cellcoadd.io.disk_space.disk_full_error`).
+        (:func:`~cellcoadd.io._files.disk_space.disk_full_error`).
     """
     target = Path(os.fspath(target))
     if target.exists() and not overwrite:

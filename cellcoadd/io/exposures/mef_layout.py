@@ -4,7 +4,7 @@ A :class:`MefLayout` says where a survey's exposure file keeps each thing cellco
 the HDUs of the image, the mask and the variance (or the inverse-variance weight), the
 names of the mask bits, the header keywords of the zero point, the identity and the band,
 and whether the image is already background subtracted. It is pure description (no I/O);
-:class:`cellcoadd.io.survey_readers.MefExposureFile` reads files with it.
+:class:`cellcoadd.io.exposures.survey_readers.MefExposureFile` reads files with it.
 
 Two layouts are provided:
 

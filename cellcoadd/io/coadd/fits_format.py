@@ -6,7 +6,7 @@ walking every header to the end of the file, and fall back to that walk without 
 ``METADATA`` the metadata JSON as a uint8 image, HDU 2 ``CELLINDEX`` one row per cell
 (index, HDU numbers of its planes, identity JSON), then one HDU per (cell, plane) named
 ``CELL_<+cx>_<+cy>_<PLANE>``. Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
-of its data unit as stored (see :mod:`cellcoadd.io.fits_checksums`), all verified on read
+of its data unit as stored (see :mod:`cellcoadd.io._fits.checksums`), all verified on read
 when ``verify`` is true.
 
 With lossless compression the float32 planes are tile-compressed (GZIP_2) as int32 images
@@ -26,17 +26,9 @@ import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import fits_direct, format_version
-from cellcoadd.io.cell_records import (
-    PLANES,
-    WcsRecords,
-    cell_record_json,
-    check_cell_geometry,
-    expected_shapes,
-    parse_cell_record,
-)
-from cellcoadd.io.coadd_file import CoaddFile
-from cellcoadd.io.fits_checksums import (
+from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
+from cellcoadd.io._fits import direct as fits_direct
+from cellcoadd.io._fits.checksums import (
     DATACRC_PLACEHOLDER,
     fill_datacrc,
     find_card,
@@ -44,17 +36,26 @@ from cellcoadd.io.fits_checksums import (
     stable_checksum_header,
     verify_hdu,
 )
-from cellcoadd.io.fits_direct import UnsupportedCard, card
-from cellcoadd.io.fits_paths import cfitsio_path, check_fits_path
-from cellcoadd.io.format_version import (
+from cellcoadd.io._fits.direct import UnsupportedCard, card
+from cellcoadd.io._fits.paths import cfitsio_path, check_fits_path
+from cellcoadd.io.coadd import format_version
+from cellcoadd.io.coadd.cell_records import (
+    PLANES,
+    WcsRecords,
+    cell_record_json,
+    check_cell_geometry,
+    expected_shapes,
+    parse_cell_record,
+)
+from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.format_version import (
     FILE_KIND,
     MAX_METADATA_BYTES,
     check_format_version,
     decode_metadata,
     sha256_hex,
 )
-from cellcoadd.io.inputs_table import inputs_from_array, inputs_to_array
-from cellcoadd.io.read_checks import check_path_readable, reading_errors
+from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
@@ -82,10 +83,10 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     """Write ``patch`` to a new FITS file at ``path`` (replaced if it exists), complete with
     its CHECKSUM, DATASUM and ``DATACRC`` cards.
 
-    Uncompressed cells are written directly (:mod:`cellcoadd.io.fits_direct`: the same
+    Uncompressed cells are written directly (:mod:`cellcoadd.io._fits.direct`: the same
     bytes CFITSIO would write, in one pass); tile-compressed ones, and anything the direct
     writer does not reproduce exactly, through CFITSIO, followed by
-    :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`.
+    :func:`~cellcoadd.io._fits.checksums.stabilise_fits_checksums`.
     """
     check_fits_path(path)
     if not compress:
@@ -159,7 +160,7 @@ def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -
 
 def _finish_head(stream: BinaryIO, head: list[dict[str, int]], size: int) -> None:
     """Fill in ``FILESIZE`` and the ``DATACRC`` of the HDUs CFITSIO wrote, stabilise their
-    checksum cards (as :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`)."""
+    checksum cards (as :func:`~cellcoadd.io._fits.checksums.stabilise_fits_checksums`)."""
     for number, extent in enumerate(head):
         start, data_start, end = extent["header_start"], extent["data_start"], extent["data_end"]
         header = bytearray(_read_at(stream, start, data_start - start))

@@ -8,7 +8,7 @@ whitelist: nothing from a file is ever evaluated as code.
 
 A :class:`~cellcoadd.model.psf_profiles.VaryingPsf` is described exactly too; a
 :class:`~cellcoadd.model.psf_profiles.GridPsf` is stored as arrays by
-:mod:`cellcoadd.io.exposure_psf`.
+:mod:`cellcoadd.io.exposures.exposure_psf`.
 """
 
 from __future__ import annotations

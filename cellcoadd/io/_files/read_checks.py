@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
+from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 
 
 @contextmanager

@@ -1,6 +1,6 @@
 """Reader of the lsst.cell_coadds FITS layout (fitsio only, no LSST software needed).
 
-A file written by :func:`~cellcoadd.io.cell_coadds_layout.write_cell_coadds` carries our
+A file written by :func:`~cellcoadd.io.foreign.cell_coadds_layout.write_cell_coadds` carries our
 extension HDUs and reads back exactly. A file written by the LSST pipelines has none: the
 patch metadata are then derived from its headers (see ``docs/format.md``), every cell of
 the table becomes a cell with its used inputs, and nothing else is invented.
@@ -21,7 +21,14 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.wcs_utils import shifted_wcs
-from cellcoadd.io.cell_coadds_layout import (
+from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
+from cellcoadd.io._fits.checksums import verify_hdu
+from cellcoadd.io.coadd.cell_records import expected_shapes, parse_cell_record
+from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.fits_format import check_fits_path
+from cellcoadd.io.coadd.format_version import MAX_METADATA_BYTES, decode_metadata, sha256_hex
+from cellcoadd.io.coadd.inputs_table import inputs_from_array
+from cellcoadd.io.foreign.cell_coadds_layout import (
     EXT_CELLS,
     EXT_INPUTS,
     EXT_METADATA,
@@ -33,13 +40,6 @@ from cellcoadd.io.cell_coadds_layout import (
     grid_of,
     shape_from_quadrupole,
 )
-from cellcoadd.io.cell_records import expected_shapes, parse_cell_record
-from cellcoadd.io.coadd_file import CoaddFile
-from cellcoadd.io.fits_checksums import verify_hdu
-from cellcoadd.io.fits_format import check_fits_path
-from cellcoadd.io.format_version import MAX_METADATA_BYTES, decode_metadata, sha256_hex
-from cellcoadd.io.inputs_table import inputs_from_array
-from cellcoadd.io.read_checks import check_path_readable, reading_errors
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord

@@ -1,6 +1,6 @@
 """Start writing a file to disk while it is still being written (Linux ``sync_file_range``).
 
-An atomic write ends with ``fsync`` (:mod:`cellcoadd.io.atomic`): until then the bytes sit
+An atomic write ends with ``fsync`` (:mod:`cellcoadd.io._files.atomic`): until then the bytes sit
 in the page cache, and the kernel only starts writing them back once a tenth of the memory
 is dirty or after 30 s. A patch file of ~1 GB is therefore written to disk only by the final
 ``fsync``, after all the work of formatting and checksumming it, as ``dd conv=fsync`` does.

@@ -24,25 +24,26 @@ import h5py
 import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
-from cellcoadd.io import format_version, parallel
-from cellcoadd.io.cell_records import (
+from cellcoadd.io._files import parallel
+from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
+from cellcoadd.io.coadd import format_version
+from cellcoadd.io.coadd.cell_records import (
     WcsRecords,
     cell_record_json,
     check_cell_geometry,
     expected_shapes,
     parse_cell_record,
 )
-from cellcoadd.io.coadd_file import CoaddFile
-from cellcoadd.io.format_version import (
+from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.format_version import (
     FILE_KIND,
     MAX_METADATA_BYTES,
     check_format_version,
     decode_metadata,
     sha256_hex,
 )
-from cellcoadd.io.hdf5_chunks import Attribute, ChunkScratch, Member, ObjectMaker
-from cellcoadd.io.inputs_table import inputs_from_array, inputs_to_array
-from cellcoadd.io.read_checks import check_path_readable, reading_errors
+from cellcoadd.io.coadd.hdf5_chunks import Attribute, ChunkScratch, Member, ObjectMaker
+from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd
@@ -76,7 +77,7 @@ def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     """Write ``patch`` to a new HDF5 file at ``path``.
 
     Objects are made through h5py's low-level API, each uncompressed chunk written as
-    HDF5 stores it (:mod:`cellcoadd.io.hdf5_chunks`). What the next cells need (chunk
+    HDF5 stores it (:mod:`cellcoadd.io.coadd.hdf5_chunks`). What the next cells need (chunk
     copies with their Fletcher-32, inputs tables, identity records) is made in a worker
     thread while this one makes the objects and writes (:class:`_PreparedCells`); HDF5
     itself is only called from this thread, in the same order whatever the timing, so the
@@ -127,8 +128,8 @@ class _Prepared(NamedTuple):
 class _PreparedCells:
     """:class:`_Prepared` of the cells, cell after cell, made :data:`_BATCH` cells at a
     time, :data:`_AHEAD` batches ahead, in a worker thread when
-    :data:`~cellcoadd.io.parallel.THREADS` allows and the file is uncompressed (the
-    copies and :func:`~cellcoadd.io.hdf5_chunks.fletcher32_rows` release the GIL). A
+    :data:`~cellcoadd.io._files.parallel.THREADS` allows and the file is uncompressed (the
+    copies and :func:`~cellcoadd.io.coadd.hdf5_chunks.fletcher32_rows` release the GIL). A
     batch's buffers are reused once its cells are written. Use as a context manager:
     leaving it stops the worker before the buffers go."""
 

@@ -40,7 +40,7 @@ import numpy as np
 from cellcoadd.errors import CellCoaddFormatError, InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
-from cellcoadd.io.lsst_images_parts import (
+from cellcoadd.io.foreign.lsst_images_parts import (
     KEY_CELL,
     KEY_CELL_WCS,
     KEY_FORMAT,

@@ -21,16 +21,16 @@ Pixel arrays round-trip bit for bit (``-0.0`` included), except that cfitsio wri
 NaN with one canonical bit pattern (the NaN positions are kept).
 
 PSF kinds (``PROFILE``, ``VARYING``, ``SAMPLED``, ``GRID``, ``PIXGRID``, ``IMAGE``,
-``PSFEX``, ``PIFF``): see :mod:`cellcoadd.io.exposure_psf`.
+``PSFEX``, ``PIFF``): see :mod:`cellcoadd.io.exposures.exposure_psf`.
 
 cfitsio writes floating-point header values with 15 significant digits, which is not
 enough to round-trip float64 (nor a WCS to 1e-9 pixel). The META document therefore holds
 the exact values of the floating-point keywords (WCS parameters, see
-:mod:`cellcoadd.io.wcs_header`, zero point, scalar variance) together with the identity,
+:mod:`cellcoadd.io._fits.wcs_header`, zero point, scalar variance) together with the identity,
 band (any Unicode), mask-bit names (case kept) and PSF description; the header keywords
 are for people and other tools, and the reader checks they agree with META. Every HDU
 carries CHECKSUM/DATASUM and ``DATACRC`` (CRC-32 of its data unit as stored, see
-:mod:`cellcoadd.io.fits_checksums`), verified on read; files without ``DATACRC`` (written
+:mod:`cellcoadd.io._fits.checksums`), verified on read; files without ``DATACRC`` (written
 before it existed) are read without that check.
 """
 
@@ -49,17 +49,17 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
-from cellcoadd.io.atomic import atomic_write, exists_error
-from cellcoadd.io.cfitsio_messages import clear_cfitsio_messages
-from cellcoadd.io.disk_space import check_free_space
-from cellcoadd.io.exposure_psf import psf_payload, read_psf
-from cellcoadd.io.fits_checksums import (
+from cellcoadd.io._files.atomic import atomic_write, exists_error
+from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
+from cellcoadd.io._fits.checksums import (
     DATACRC_PLACEHOLDER,
     stabilise_fits_checksums,
     verify_hdu,
 )
-from cellcoadd.io.fits_paths import cfitsio_path, starts_like_fits
-from cellcoadd.io.wcs_header import as_float, read_wcs, same_float, wcs_cards
+from cellcoadd.io._fits.paths import cfitsio_path, starts_like_fits
+from cellcoadd.io._fits.wcs_header import as_float, read_wcs, same_float, wcs_cards
+from cellcoadd.io.exposures.exposure_psf import psf_payload, read_psf
 from cellcoadd.model.exposure import Exposure, ExposureError
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.sources import ExposureHeader
@@ -78,7 +78,7 @@ def write_exposure(
     """Write ``exposure`` to the FITS file ``path`` atomically.
 
     The file is written to a temporary file in the same directory, flushed to disk and
-    renamed onto ``path`` (:func:`cellcoadd.io.atomic.atomic_write`), so a reader never
+    renamed onto ``path`` (:func:`cellcoadd.io._files.atomic.atomic_write`), so a reader never
     sees a partial file, and an existing file is never replaced unless ``overwrite``. The
     same exposure gives a byte-identical file (the checksum cards carry fixed comments, not
     the time).

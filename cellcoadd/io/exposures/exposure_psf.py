@@ -1,5 +1,5 @@
 """How an exposure's PSF is stored in an exposure file: its kind, META description and
-optional ``PSF`` HDU array (see :mod:`cellcoadd.io.exposure_io` for the file layout).
+optional ``PSF`` HDU array (see :mod:`cellcoadd.io.exposures.exposure_io` for the file layout).
 
 The kind follows the exposure's :attr:`~cellcoadd.model.exposure.Exposure.psf_model`, so a
 bare form (GSObject, callable, ``galsim.Image``) and its wrapper (``GalSimPsf``,
@@ -9,7 +9,7 @@ bare form (GSObject, callable, ``galsim.Image``) and its wrapper (``GalSimPsf``,
 PSFKIND   stored as                                               read back as
 ========  ======================================================  =======================
 PROFILE   a GSObject of the whitelist: exact JSON description     the same GSObject
-          (:mod:`cellcoadd.io.psf_codec`), no HDU
+          (:mod:`cellcoadd.io.exposures.psf_codec`), no HDU
 VARYING   a :class:`~cellcoadd.model.psf_profiles.VaryingPsf`:    the same VaryingPsf
           exact JSON description, no HDU
 SAMPLED   any other GSObject: one oversampled pre-pixel stamp     an InterpolatedImage
@@ -45,8 +45,8 @@ import galsim
 import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError, PsfError
-from cellcoadd.io.psf_codec import can_encode, decode_psf, encode_psf
-from cellcoadd.io.wcs_header import as_float
+from cellcoadd.io._fits.wcs_header import as_float
+from cellcoadd.io.exposures.psf_codec import can_encode, decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PiffPsf, PsfexPsf
 from cellcoadd.model.psf_profiles import GridPsf, VaryingPsf

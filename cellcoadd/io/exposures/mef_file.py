@@ -13,9 +13,9 @@ import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.fits_headers import read_header
-from cellcoadd.io.fits_paths import cfitsio_path, starts_like_fits
-from cellcoadd.io.mef_layout import HduRef
+from cellcoadd.io._fits.headers import read_header
+from cellcoadd.io._fits.paths import cfitsio_path, starts_like_fits
+from cellcoadd.io.exposures.mef_layout import HduRef
 
 
 class MefFile:

@@ -1,4 +1,4 @@
-"""The pieces of the lsst-images conversion (:mod:`cellcoadd.io.lsst_images`): metadata
+"""The pieces of the lsst-images conversion (:mod:`cellcoadd.io.foreign.lsst_images`): metadata
 keys, units, masks, provenance and geometry, shared by the export and the import."""
 
 from __future__ import annotations

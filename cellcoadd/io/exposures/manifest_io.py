@@ -144,9 +144,9 @@ def sources_from_manifest(
 
 
 def _source(entry: ManifestEntry, base: Path) -> ExposureSource:
-    from cellcoadd.io.exposure_source import ExposureFile
-    from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout
-    from cellcoadd.io.survey_readers import MefExposureFile
+    from cellcoadd.io.exposures.exposure_source import ExposureFile
+    from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout
+    from cellcoadd.io.exposures.survey_readers import MefExposureFile
 
     path = base / entry.path
     if entry.layout == "cellcoadd":

@@ -16,7 +16,7 @@ own checksum pass, so the CRC adds no read.
 Writers add the card with the placeholder value 0 (:data:`DATACRC_PLACEHOLDER`), so the
 header has room for it, and :func:`stabilise_fits_checksums` fills in the real value in
 place once the file is complete, together with fixed comments on the checksum cards. The
-direct writer of uncompressed coadds (:mod:`cellcoadd.io.fits_direct`) computes the same
+direct writer of uncompressed coadds (:mod:`cellcoadd.io._fits.direct`) computes the same
 cards as it writes each HDU, with the same result.
 """
 
@@ -30,7 +30,7 @@ from typing import Any, BinaryIO
 import fitsio
 import numpy as np
 
-from cellcoadd.io.fits_paths import cfitsio_path
+from cellcoadd.io._fits.paths import cfitsio_path
 
 #: Keyword of the CRC-32 of an HDU's data unit as stored.
 DATACRC = "DATACRC"

@@ -3,7 +3,7 @@
 Writing a patch's ~7 HDUs per cell through fitsio costs far more than the bytes: CFITSIO
 creates each image HDU with a zero-filled data unit before the pixels overwrite it, every
 keyword is a separate update of the header, and ``write_checksum`` reads each data unit
-back to sum it, after which :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums`
+back to sum it, after which :func:`~cellcoadd.io._fits.checksums.stabilise_fits_checksums`
 maps the whole file again for ``DATACRC``. Here an HDU is assembled in memory: its header
 cards formatted as CFITSIO formats them (:func:`card`), DATASUM summed from the pixels as
 they are in memory (the sum of 32-bit words does not depend on byte order), the CRC-32
@@ -34,12 +34,12 @@ from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 
-from cellcoadd.io.fits_checksums import (
+from cellcoadd.io._files.parallel import map_in_threads
+from cellcoadd.io._fits.checksums import (
     DATACRC_PLACEHOLDER,
     encode_checksum,
     ones_complement_sum,
 )
-from cellcoadd.io.parallel import map_in_threads
 
 BLOCK = 2880
 #: Buffers per ``writev`` call (POSIX guarantees at least 16; Linux allows 1024).
@@ -169,7 +169,7 @@ def _padding(size: int) -> int:
 
 def _finish_header(cards: list[bytes], datasum: int) -> bytes:
     """Header bytes: ``cards``, CHECKSUM and DATASUM (fixed comments, as
-    :func:`~cellcoadd.io.fits_checksums.stabilise_fits_checksums` leaves them), END, fill.
+    :func:`~cellcoadd.io._fits.checksums.stabilise_fits_checksums` leaves them), END, fill.
 
     The header's ones' complement sum is the sum of its cards' sums (a card is 20 whole
     32-bit words), each summed once per distinct card, and of the blank fill.
@@ -403,7 +403,7 @@ class DirectHdus:
     A cell's HDUs end with its table (its inputs), so each table closes a cell. Every
     HDU's size follows from its shape and number of cards (values do not change a card's
     80 bytes), so each cell's place in the file is known before its bytes are made; the
-    threads of :func:`~cellcoadd.io.parallel.map_in_threads` then each take whole cells,
+    threads of :func:`~cellcoadd.io._files.parallel.map_in_threads` then each take whole cells,
     prepare them (big-endian copy, DATASUM, CRC-32, headers) and write them in place
     (``pwritev``). numpy, ``zlib`` and the writes release the GIL, and a thread's data stay
     in its core's cache.

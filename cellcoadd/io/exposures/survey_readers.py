@@ -2,7 +2,7 @@
 :class:`~cellcoadd.model.sources.ExposureSource` objects.
 
 :class:`MefExposureFile` reads one detector exposure laid out as a :class:`MefLayout`
-(:mod:`cellcoadd.io.mef_layout`): ``header()`` reads FITS headers only, ``load(box)``
+(:mod:`cellcoadd.io.exposures.mef_layout`): ``header()`` reads FITS headers only, ``load(box)``
 reads only the pixels of ``box`` of each plane (fitsio slicing, tile-compressed HDUs
 included), each once, and returns an :class:`~cellcoadd.model.exposure.Exposure` whose
 ``origin`` is the box's start and whose WCS is the file's WCS shifted to the cutout
@@ -30,9 +30,9 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
-from cellcoadd.io.mef_file import MefFile, open_mef
-from cellcoadd.io.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
-from cellcoadd.io.wcs_header import WCS_KEYWORD
+from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
+from cellcoadd.io.exposures.mef_file import MefFile, open_mef
+from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf import PiffPsf, PsfexPsf
@@ -103,8 +103,8 @@ class MefExposureFile(ExposureSource):
     path : path-like
         The exposure file (``.fits`` or tile-compressed ``.fits.fz``).
     layout : MefLayout
-        Where things are (:data:`~cellcoadd.io.mef_layout.LSST_LAYOUT`,
-        :data:`~cellcoadd.io.mef_layout.DES_LAYOUT` or your own).
+        Where things are (:data:`~cellcoadd.io.exposures.mef_layout.LSST_LAYOUT`,
+        :data:`~cellcoadd.io.exposures.mef_layout.DES_LAYOUT` or your own).
     psf : PsfModel, other PSF form of Exposure, or path
         The PSF model; a path ending in ``.psf`` is read as a PSFEx model, any other path
         as a Piff model (read now: errors come early, and the model's bytes travel with

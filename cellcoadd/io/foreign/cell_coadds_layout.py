@@ -13,7 +13,7 @@ HDUs that the LSST reader never looks at: ``CELLCOADD`` (uint8 image, the metada
 as the ``METADATA`` HDU of our own FITS layout), ``CELLCOADD_CELLS`` (one row per cell:
 index, row in the cell table or -1, identity JSON) and ``CELLCOADD_INPUTS`` (every input
 record of every cell). A file without them (written by the LSST pipelines) is read from
-the LSST part alone (:mod:`cellcoadd.io.cell_coadds_reader`).
+the LSST part alone (:mod:`cellcoadd.io.foreign.cell_coadds_reader`).
 
 This module holds the conventions shared by the writer and the reader and the writer.
 """
@@ -30,12 +30,12 @@ import numpy as np
 from astropy.wcs import WCS
 
 from cellcoadd.geometry.wcs_utils import shifted_wcs
-from cellcoadd.io import format_version
-from cellcoadd.io.cell_records import cell_record_json
-from cellcoadd.io.fits_checksums import DATACRC_PLACEHOLDER
-from cellcoadd.io.format_version import sha256_hex
-from cellcoadd.io.inputs_table import inputs_to_array
-from cellcoadd.io.wcs_header import wcs_cards
+from cellcoadd.io._fits.checksums import DATACRC_PLACEHOLDER
+from cellcoadd.io._fits.wcs_header import wcs_cards
+from cellcoadd.io.coadd import format_version
+from cellcoadd.io.coadd.cell_records import cell_record_json
+from cellcoadd.io.coadd.format_version import sha256_hex
+from cellcoadd.io.coadd.inputs_table import inputs_to_array
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata

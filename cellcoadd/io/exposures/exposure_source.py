@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.io.exposure_io import read_exposure, read_exposure_header
+from cellcoadd.io.exposures.exposure_io import read_exposure, read_exposure_header
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.sources import ExposureHeader, ExposureSource
 

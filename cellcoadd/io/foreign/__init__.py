@@ -1,0 +1,1 @@
+"""Layouts of other codes: Rubin's ``cell_coadds`` FITS files and lsst-images objects."""
