@@ -17,6 +17,7 @@ from exposure_factory import make_exposure
 from cellcoadd import BuildConfig, MaskBits, SkyMap, SkyMapConfig, build_patch
 from cellcoadd.builder.cell import CellBlock, build_cells
 from cellcoadd.builder.exposure_frame import exposure_frame, projected_valid_box
+from cellcoadd.builder.inputs import BuildInput, BuildSettings
 from cellcoadd.builder.mapping import map_box
 from cellcoadd.geometry.box import Box
 
@@ -147,8 +148,9 @@ def test_an_exposure_serving_none_of_the_area_is_left_out(patch, exposures):
     far = make_exposure((210.0, 10.0), visit=9)
     frame = exposure_frame(patch.tract.wcs, patch.outer_bbox, far, 1e-3)
     assert frame.serves_nothing
-    block = CellBlock(patch.cells[:2], BUILD, 0, BITS, "r", record_distant=False)
-    block.add(far, frame)
+    settings = BuildSettings(BUILD, 0, BITS, "r", patch.outer_bbox, record_distant=False)
+    block = CellBlock(patch.cells[:2], settings)
+    block.add(BuildInput.of(far), frame)
     assert all(not records for records in block.records)
 
 

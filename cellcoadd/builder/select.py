@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from astropy.wcs.wcs import NoConvergence
 
-from cellcoadd.builder.footprint import footprint_box
-from cellcoadd.builder.mapping import PixelMapping, map_box
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
+from cellcoadd.builder.mapping import PixelMapping, footprint_box, map_box
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -31,6 +31,16 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: noise realizations' Gaussian tails, so that every warped contribution stays finite in
 #: the float32 coadd planes.
 _LARGEST_INPUT = _FLOAT32_MAX / 1024.0
+
+
+#: Exposure pixels by which the kernel's footprint of the nine exactly mapped points of a
+#: cell's outer box is grown to decide whether an exposure is near the cell
+#: (:func:`rough_exposure_box`), for the mapping between the points, which they do not
+#: sample.
+NEAR_TOLERANCE = 1
+#: Exposure pixels by which :func:`exposures_near_cells` loosens that decision, for the
+#: differences an iterative SIP inverse shows on another batch of points.
+BATCH_SLACK = 16.0
 
 
 # What evaluating a WCS far from its detector may raise (astropy's WCS errors are
@@ -68,7 +78,12 @@ def _rough_points(cell: Cell) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rough_exposure_box(cell: Cell, exposure: Exposure | ExposureHeader) -> Box | None:
-    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far)."""
+    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far).
+
+    The kernel's footprint of the points, grown by :data:`NEAR_TOLERANCE`: the decision
+    whether an exposure is near a cell that has no shared mapping of it. Near exposures
+    are then selected on the cell's full mapping (:func:`select_exposure`).
+    """
     ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
     try:
         ex, ey = exposure.wcs.all_world2pix(ra, dec, 0, quiet=True)
@@ -76,19 +91,17 @@ def rough_exposure_box(cell: Cell, exposure: Exposure | ExposureHeader) -> Box |
         return None
     if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
         return None
-    found = Box(
-        x_start=int(np.floor(ex.min())) - 3,
-        x_stop=int(np.floor(ex.max())) + 5,
-        y_start=int(np.floor(ey.min())) - 3,
-        y_stop=int(np.floor(ey.max())) + 5,
-    )
+    x_start, x_stop = WARP_KERNEL.tap_range(ex.min(), ex.max())
+    y_start, y_stop = WARP_KERNEL.tap_range(ey.min(), ey.max())
+    found = Box(x_start=x_start, x_stop=x_stop, y_start=y_start, y_stop=y_stop)
+    found = found.grow(NEAR_TOLERANCE)
     return found if found.overlaps(Box.from_shape(exposure.shape)) else None
 
 
 def exposures_near_cells(
     cells: Sequence[Cell],
     exposures: Sequence[Exposure | ExposureHeader],
-    margin: float = 16.0,
+    margin: float = BATCH_SLACK,
 ) -> list[list[int]]:
     """For each cell, the indices of the exposures that may be near it, in one pass.
 
@@ -131,12 +144,16 @@ def exposures_near_cells(
             unsure = unsure.reshape(len(cells), n_points).any(axis=1)  # type: ignore[assignment]
             unsure |= ~(np.isfinite(ex).all(axis=1) & np.isfinite(ey).all(axis=1))
             ny, nx = exposure.shape
+            # rough_exposure_box's test, loosened by the margin: its box starts
+            # floor(min) - below and stops at floor(max) + above
+            below = NEAR_TOLERANCE - WARP_KERNEL.first_offset
+            above = WARP_KERNEL.last_offset + 1 + NEAR_TOLERANCE
             with np.errstate(invalid="ignore"):
                 close = (
-                    (ex.min(axis=1) - margin < nx + 3)
-                    & (ex.max(axis=1) + margin > -5)
-                    & (ey.min(axis=1) - margin < ny + 3)
-                    & (ey.max(axis=1) + margin > -5)
+                    (ex.min(axis=1) - margin < nx + below)
+                    & (ex.max(axis=1) + margin > -above)
+                    & (ey.min(axis=1) - margin < ny + below)
+                    & (ey.max(axis=1) + margin > -above)
                 )
             keep = unsure | close
         for i in np.flatnonzero(keep):
