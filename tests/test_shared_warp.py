@@ -17,7 +17,7 @@ from exposure_factory import make_exposure
 from cellcoadd import BuildConfig, MaskBits, SkyMap, SkyMapConfig, build_patch
 from cellcoadd.builder.cell import CellBlock, build_cells
 from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame, projected_valid_box
-from cellcoadd.builder.inputs import BuildInput, BuildSettings
+from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.mapping import map_box
 from cellcoadd.geometry.box import Box
 
@@ -250,3 +250,28 @@ def test_an_input_in_memory_is_its_own_source(exposures):
     loaded, origin = item.load(Box(x_start=10, x_stop=20, y_start=5, y_stop=9))
     assert loaded is exposure and origin == (0, 0)  # whole: positions need no shift
     assert BuildInput.of(item) is item
+
+
+def test_the_candidates_of_a_cell_hold_every_input_it_records(patch, exposures, serial):
+    """A patch build sends a block only the inputs its frames put near one of its cells:
+    every input a cell records (used or rejected) is among them, a far one is not."""
+    far = dataclasses.replace(make_exposure((210.0, 10.0), visit=9), mask_bits=BITS)
+    build = prepare(
+        patch.cells,
+        [*exposures, far],
+        BUILD,
+        4,
+        one_band=True,
+        area=patch.outer_bbox,
+        record_distant=False,
+    )
+    keys = [item.key for item in build.inputs]
+    served = 0
+    for cell in patch.cells:
+        candidates = {keys[k] for k in build.candidates([cell])}
+        recorded = {(r.visit, r.detector) for r in serial.cells[cell.index].inputs}
+        assert recorded <= candidates, cell.index
+        assert far.key not in candidates
+        served += bool(recorded)
+    assert served == len(patch.cells)
+    assert build.candidates(patch.cells) == list(range(len(exposures)))

@@ -35,7 +35,7 @@ from cellcoadd.builder.cell_sums import (
     finish_cell,
     input_record,
 )
-from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
+from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame, rough_exposure_box
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
@@ -44,7 +44,7 @@ from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping, footprint_box
 from cellcoadd.builder.psf import PsfError, psf_moments
-from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
+from cellcoadd.builder.select import Candidate, Rejection, select_exposure
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -184,7 +184,7 @@ class CellBlock:
         for i, cell in enumerate(self.cells):
             self.current = cell
             box = cell.outer_bbox
-            if frame.serves_nothing or not box.overlaps(frame.region):
+            if not frame.may_serve(box):
                 if record_distant:
                     self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
             elif frame.covers(box):

@@ -117,6 +117,17 @@ class PreparedBuild:
     frames: list[ExposureFrame | None]
     settings: BuildSettings
 
+    def candidates(self, cells: Sequence[Cell]) -> list[int]:
+        """Indices of the inputs that may serve some of ``cells`` (of the build's area),
+        from their frames: every other input would leave those cells' records and pixels
+        as they are (:meth:`~cellcoadd.builder.cell.CellBlock.add` makes the same
+        decision per cell first). Inputs not mapped (another band) are left out."""
+        return [
+            k
+            for k, frame in enumerate(self.frames)
+            if frame is not None and any(frame.may_serve(cell.outer_bbox) for cell in cells)
+        ]
+
 
 def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: BuildConfig) -> None:
     """Refuse exposures that do not define every required bad-mask bit by name.

@@ -1,7 +1,8 @@
 """Coadding every cell of a patch, in parallel on any ``concurrent.futures`` executor.
 
 Each exposure is mapped once onto the patch (:func:`~cellcoadd.builder.exposure_frame.
-exposure_frame`, from its header, here); the cells are then built in blocks of
+exposure_frame`, from its header, here, in the set-up every build shares:
+:func:`~cellcoadd.builder.inputs.prepare`); the cells are then built in blocks of
 neighbours, each block an independent task that receives only the exposures near it and
 warps each of them once for all its cells (:class:`~cellcoadd.builder.cell.CellBlock`). A
 cell's result depends only on its inputs, their mapping over the patch and the seed, not
@@ -40,7 +41,6 @@ from cellcoadd.builder.cell import CellBlock
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
-from cellcoadd.builder.select import exposures_near_cells
 from cellcoadd.errors import CellBuildError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -320,7 +320,6 @@ def build_patch(
     )
     band = build.settings.band
     assert band is not None  # one_band
-    near = exposures_near_cells(cells, [item.header for item in build.inputs])
     # each exposure mapped once onto the patch, from its header: shared by every block
     framed = [(item, frame) for item, frame in zip(build.inputs, build.frames, strict=True)]
     client = pool = None
@@ -333,11 +332,10 @@ def build_patch(
     # a pool made here holds the inputs and dask receives them once: tasks name them by
     # index; a given executor gets the inputs with each task
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
-    by_index = {cell.index: indices for cell, indices in zip(cells, near, strict=True)}
     tasks: list[Task] = []
     sources = any(item.source is not None for item in build.inputs)
     for block in blocks_of(cells, _task_count(pool, client, workers, sources)):
-        indices = sorted({i for cell in block for i in by_index[cell.index]})
+        indices = build.candidates(block)  # only these can change the block's cells
         tasks.append(
             (block, indices if owned or client is not None else [framed[i] for i in indices])
         )
