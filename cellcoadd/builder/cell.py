@@ -35,7 +35,7 @@ from cellcoadd.builder.cell_sums import (
     finish_cell,
     input_record,
 )
-from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame, rough_exposure_box
+from cellcoadd.builder.exposure_frame import ExposureFrame, rough_exposure_box
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
@@ -126,21 +126,20 @@ class CellBlock:
         self.jacobians = [cell_jacobian(cell) for cell in cells]
         self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
 
-    def add(self, item: BuildInput, frame: ExposureFrame | None = None) -> None:
+    def add(self, item: BuildInput, frame: ExposureFrame | None) -> None:
         """Consider one input for every cell: select, warp and add it where it is usable.
 
-        ``frame``: the input's :func:`exposure_frame` over the build's area (computed here
-        by default). Each cell gets at most one input record.
+        ``frame``: the input's frame over the build's area
+        (:func:`~cellcoadd.builder.exposure_frame.exposure_frame`), as
+        :func:`~cellcoadd.builder.inputs.prepare` gives it (None for an input of another
+        band, which is not mapped). Each cell gets at most one input record.
         """
         header = item.header
         if header.band != self.settings.band:
             for records in self.records:
                 records.append(input_record(header, InputStatus.BAND_MISMATCH))
             return
-        if frame is None:
-            frame = exposure_frame(
-                self.cells[0].tract_wcs, self.settings.area, header, self.config.mapping_tolerance
-            )
+        assert frame is not None  # prepare maps every input of the band
         shared, alone = self._near_cells(header, frame)
         if not shared and not alone:
             return
