@@ -198,6 +198,41 @@ def test_imports_point_downward(path):
     assert violations(PACKAGE, BLOCKS, path) == []
 
 
+_PATH = re.compile(r"`([\w./]+(?:\.py|/))`")
+_PATH_AND_NAME = re.compile(r"`([\w./]+\.py)`,\s+`(\w+)`")
+
+
+def _defined_names(path: Path) -> set[str]:
+    """Names a module defines or imports at its top level, and its classes' methods."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(t.id for t in targets if isinstance(t, ast.Name))
+    return names
+
+
+def test_architecture_names_files_and_functions_that_exist():
+    """Every file or folder the page names exists (paths from the repository or from
+    ``cellcoadd/``), and every "`file.py`, `name`" names something that file defines."""
+    text = ARCHITECTURE.read_text()
+    missing = [
+        token
+        for token in sorted(set(_PATH.findall(text)))
+        if not ((ROOT / token).exists() or (PACKAGE / token).exists())
+    ]
+    assert missing == []
+    pairs = _PATH_AND_NAME.findall(text)
+    assert len(pairs) > 10  # the data path names its functions this way
+    for token, name in pairs:
+        path = PACKAGE / token if (PACKAGE / token).exists() else ROOT / token
+        assert name in _defined_names(path), f"docs/architecture.md: {token} has no {name}"
+
+
 def _fake_package(tmp_path: Path, files: dict[str, str]) -> Path:
     package = tmp_path / "cellcoadd"
     for name, text in files.items():
