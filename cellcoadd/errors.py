@@ -28,7 +28,8 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
 - A shear measurement that cannot run: :class:`ShearError`, or :class:`MetacalError`,
   :class:`BfdError`, :class:`EmptyCellError` (a cell without inputs).
 - A computation that failed although its inputs were valid (a sampler that does not
-  converge, a self-check of a pipeline): :class:`CellCoaddRuntimeError`.
+  converge, a self-check of a pipeline): :class:`CellCoaddRuntimeError`; one that produced
+  non-finite numbers where finite ones are required: :class:`CellCoaddFloatingPointError`.
 - A feature that is not supported here: :class:`CellCoaddNotImplementedError`. A bare
   ``raise NotImplementedError`` is kept only as the body of an abstract method;
   ``AttributeError`` only where Python's protocols ask for it (module ``__getattr__``,
@@ -74,6 +75,7 @@ their facts (they cross process boundaries in parallel builds)::
     │   ├── CellBuildError (RuntimeError)     one cell failed (names the cell, traceback)
     │   └── MappingError (ValueError)         a pixel mapping out of tolerance
     ├── CellCoaddRuntimeError (RuntimeError)  a computation failed on valid inputs
+    ├── CellCoaddFloatingPointError           non-finite results (FloatingPointError)
     └── CellCoaddNotImplementedError          a feature not supported here
 """
 
@@ -88,6 +90,7 @@ __all__ = [
     "CellBuildError",
     "CellCoaddError",
     "CellCoaddFileNotFoundError",
+    "CellCoaddFloatingPointError",
     "CellCoaddFormatError",
     "CellCoaddIncompatibleValuesError",
     "CellCoaddIndexError",
@@ -384,6 +387,10 @@ class MappingError(BuildError, CellCoaddValueError):
 
 class CellCoaddRuntimeError(CellCoaddError, RuntimeError):
     """A computation failed although its inputs were valid (no convergence, a self-check)."""
+
+
+class CellCoaddFloatingPointError(CellCoaddError, FloatingPointError):
+    """A computation produced non-finite numbers where finite ones are required."""
 
 
 class CellCoaddNotImplementedError(CellCoaddError, NotImplementedError):

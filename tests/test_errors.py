@@ -131,6 +131,7 @@ def test_os_errors_keep_errno_and_text() -> None:
         (errors_module.CellBuildError, RuntimeError),
         (errors_module.CellCoaddRuntimeError, RuntimeError),
         (errors_module.CellCoaddNotImplementedError, NotImplementedError),
+        (errors_module.CellCoaddFloatingPointError, FloatingPointError),
         (CellCoaddOSError, OSError),
         (CellCoaddFileNotFoundError, FileNotFoundError),
     ],

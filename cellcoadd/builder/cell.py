@@ -37,7 +37,7 @@ from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping
 from cellcoadd.builder.psf import PsfError, psf_moments
 from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
-from cellcoadd.errors import InputError
+from cellcoadd.errors import CellCoaddValueError, ConfigError, InputError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -80,7 +80,12 @@ def check_unique_inputs(exposures: Sequence[Exposure | ExposureHeader]) -> None:
     seen: set[tuple[int, int]] = set()
     for exposure in exposures:
         if exposure.key in seen:
-            raise ValueError(f"duplicate input (visit, detector) = {exposure.key}")
+            raise InputError(
+                f"duplicate input (visit, detector) = {exposure.key}",
+                value=exposure.key,
+                visit=exposure.key[0],
+                detector=exposure.key[1],
+            )
         seen.add(exposure.key)
 
 
@@ -160,17 +165,19 @@ class CellBlock:
         record_distant: bool = True,
     ) -> None:
         if not cells:
-            raise ValueError("a block needs at least one cell")
+            raise CellCoaddValueError("a block needs at least one cell")
         if len({cell.tract for cell in cells}) > 1:
-            raise ValueError("the cells of a block must belong to one tract")
+            raise CellCoaddValueError("the cells of a block must belong to one tract")
         self.cells = list(cells)
         self.current = self.cells[0]
         for cell in self.cells:
             self.current = cell
             if config.psf_size > min(cell.outer_bbox.shape):
-                raise ValueError(
+                raise ConfigError(
                     f"psf_size {config.psf_size} exceeds the outer box {cell.outer_bbox} of "
-                    f"cell {cell.index}"
+                    f"cell {cell.index}",
+                    value=config.psf_size,
+                    cell=cell.index,
                 )
         self.config, self.seed, self.mask_bits, self.band = config, seed, mask_bits, band
         self.record_distant = record_distant

@@ -40,7 +40,7 @@ from cellcoadd.builder.cell import CellBlock, check_mask_bits, check_unique_inpu
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
 from cellcoadd.builder.select import exposures_near_cells
-from cellcoadd.errors import CellBuildError
+from cellcoadd.errors import CellBuildError, CellCoaddValueError, InputError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -341,13 +341,17 @@ def build_patch(
     check_unique_inputs(headers)
     bands = sorted({header.band for header in headers})
     if not bands:
-        raise ValueError("build_patch needs at least one exposure")
+        raise CellCoaddValueError("build_patch needs at least one exposure")
     if len(bands) > 1:
-        raise ValueError(f"exposures of several bands given ({bands}); build one band at a time")
+        raise CellCoaddValueError(
+            f"exposures of several bands given ({bands}); build one band at a time", value=bands
+        )
     try:
         check_band_name(bands[0])
     except ValueError as err:
-        raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
+        raise InputError(
+            f"band {bands[0]!r} cannot be recorded in a coadd: {err}", value=bands[0]
+        ) from None
     check_mask_bits(headers, config)  # before any work
     mask_bits = MaskBits.union(header.mask_bits for header in headers)
     cells = patch.cells
