@@ -18,7 +18,11 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
 - A file that cannot be read (damaged, truncated, not ours, a newer major version) or written
   as asked: :class:`CellCoaddFormatError` (always names the file; ``hdu=`` when known).
   A file that does not exist: :class:`CellCoaddFileNotFoundError`; the disk is full or
-  another operating-system failure: :class:`CellCoaddOSError` (``errno=``).
+  another operating-system failure: :class:`CellCoaddOSError` (``errno=``). A parsing helper
+  that finds stored bytes, a header or an HDF5 object damaged but does not know the file
+  raises :class:`DamagedDataError` (``hdu=`` when known); the reader's guard
+  (``io/_files/read_checks.py``) re-raises it as a :class:`CellCoaddFormatError` naming the
+  file. Readers never signal damage with a builtin exception.
 - An in-memory coadd that is malformed: :class:`InvalidCoaddError`.
 - An input exposure that cannot be used: :class:`InputError`, or its :class:`ExposureError`
   (malformed at construction) and :class:`PsfError` (the PSF cannot be drawn); a PSF
@@ -69,6 +73,7 @@ their facts (they cross process boundaries in parallel builds)::
     ├── CellCoaddKeyError (KeyError)          an unknown name
     ├── CellCoaddIndexError (IndexError)      an index outside a grid
     ├── CellCoaddFormatError                  a file cannot be read or written as asked
+    ├── DamagedDataError (ValueError)         stored data are damaged (file not yet named)
     ├── CellCoaddOSError (OSError)            the operating system refused (disk full, ...)
     │   └── CellCoaddFileNotFoundError        a file or directory does not exist
     ├── BuildError                            a build cannot proceed
@@ -102,6 +107,7 @@ __all__ = [
     "CellCoaddTypeError",
     "CellCoaddValueError",
     "ConfigError",
+    "DamagedDataError",
     "EmptyCellError",
     "ExposureError",
     "GeometryError",
@@ -348,6 +354,15 @@ class CellCoaddFormatError(CellCoaddError):
         path = os.fspath(path)
         super().__init__(f"{path}: {problem}", path=path, **facts)
         self.problem = problem
+
+
+class DamagedDataError(CellCoaddError, ValueError):
+    """Bytes, a header or an HDF5 object read from a file are not what the format requires.
+
+    Raised by parsing helpers that do not know which file they read; the reader's guard
+    turns it into a :class:`CellCoaddFormatError` naming the file (keeping ``hdu`` and
+    ``cell``). Seen outside a reader only when such a helper is called directly.
+    """
 
 
 class CellCoaddOSError(CellCoaddError, OSError):

@@ -21,6 +21,7 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
+from cellcoadd.errors import CellCoaddFileNotFoundError
 from cellcoadd.io._files.disk_space import disk_full_error
 from cellcoadd.io._files.writeback import EarlyWriteback
 
@@ -130,7 +131,7 @@ def atomic_write(
         raise exists_error(target)
     directory = target.parent
     if not directory.is_dir():
-        raise FileNotFoundError(f"{directory}: no such directory")
+        raise CellCoaddFileNotFoundError(f"{directory}: no such directory", path=directory)
     remove_stale_temporaries(target)
     temporary = directory / temporary_name(target)
     if prepare is not None:

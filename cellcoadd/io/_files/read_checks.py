@@ -7,7 +7,7 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFileNotFoundError, CellCoaddFormatError
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 
 
@@ -25,10 +25,11 @@ def reading_errors(path: str, what: str) -> Iterator[None]:
 
 
 def check_path_readable(path: str) -> int:
-    """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty
-    or not a regular file (a directory, a pipe or a device could block or mislead a reader)."""
+    """Size of ``path`` in bytes; CellCoaddFileNotFoundError if absent, CellCoaddFormatError
+    if empty or not a regular file (a directory, a pipe or a device could block or mislead a
+    reader)."""
     if not os.path.exists(path):
-        raise FileNotFoundError(f"{path}: no such file")
+        raise CellCoaddFileNotFoundError(f"{path}: no such file", path=path)
     if not os.path.isfile(path):
         raise CellCoaddFormatError(path, "not a regular file")
     size = os.path.getsize(path)

@@ -61,7 +61,7 @@ def decode_metadata(path: str, payload: bytes, version: str) -> PatchMetadata:
     _, minor = check_format_version(path, version)
     data = json.loads(payload.decode("utf-8"))
     if not isinstance(data, dict):
-        raise ValueError("metadata JSON is not an object")
+        raise CellCoaddFormatError(path, "metadata JSON is not an object")
     if minor > parse_format_version(FORMAT_VERSION)[1]:
         data = _drop_unknown_fields(PatchMetadata, data)
     metadata = PatchMetadata.model_validate(data)

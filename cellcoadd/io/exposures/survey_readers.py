@@ -27,7 +27,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
@@ -132,7 +132,9 @@ class MefExposureFile(ExposureSource):
         band: str | None = None,
     ):
         if not isinstance(layout, MefLayout):
-            raise TypeError(f"layout must be a MefLayout, got {layout!r}")
+            raise CellCoaddTypeError(
+                f"layout must be a MefLayout, got {layout!r}", allowed=MefLayout
+            )
         self.path = os.fspath(path)
         self.layout = layout
         self.psf = psf_from(psf)
