@@ -17,7 +17,8 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
 - Build, storage or validation settings that cannot work: :class:`ConfigError`.
 - A file that cannot be read (damaged, truncated, not ours, a newer major version) or written
   as asked: :class:`CellCoaddFormatError` (always names the file; ``hdu=`` when known).
-  A file that does not exist: :class:`CellCoaddFileNotFoundError`; the disk is full or
+  A file that does not exist: :class:`CellCoaddFileNotFoundError`; one a write would
+  replace without ``overwrite=True``: :class:`CellCoaddFileExistsError`; the disk is full or
   another operating-system failure: :class:`CellCoaddOSError` (``errno=``). A parsing helper
   that finds stored bytes, a header or an HDF5 object damaged but does not know the file
   raises :class:`DamagedDataError` (``hdu=`` when known); the reader's guard
@@ -34,6 +35,8 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
 - A computation that failed although its inputs were valid (a sampler that does not
   converge, a self-check of a pipeline): :class:`CellCoaddRuntimeError`; one that produced
   non-finite numbers where finite ones are required: :class:`CellCoaddFloatingPointError`.
+- An optional dependency that is not installed: :class:`MissingDependencyError` (the
+  message names the extra to install).
 - A feature that is not supported here: :class:`CellCoaddNotImplementedError`. A bare
   ``raise NotImplementedError`` is kept only as the body of an abstract method;
   ``AttributeError`` only where Python's protocols ask for it (module ``__getattr__``,
@@ -75,12 +78,14 @@ their facts (they cross process boundaries in parallel builds)::
     ├── CellCoaddFormatError                  a file cannot be read or written as asked
     ├── DamagedDataError (ValueError)         stored data are damaged (file not yet named)
     ├── CellCoaddOSError (OSError)            the operating system refused (disk full, ...)
-    │   └── CellCoaddFileNotFoundError        a file or directory does not exist
+    │   ├── CellCoaddFileNotFoundError        a file or directory does not exist
+    │   └── CellCoaddFileExistsError          a write would replace a file
     ├── BuildError                            a build cannot proceed
     │   ├── CellBuildError (RuntimeError)     one cell failed (names the cell, traceback)
     │   └── MappingError (ValueError)         a pixel mapping out of tolerance
     ├── CellCoaddRuntimeError (RuntimeError)  a computation failed on valid inputs
     ├── CellCoaddFloatingPointError           non-finite results (FloatingPointError)
+    ├── MissingDependencyError (ImportError)  an optional dependency is not installed
     └── CellCoaddNotImplementedError          a feature not supported here
 """
 
@@ -94,6 +99,7 @@ __all__ = [
     "BuildError",
     "CellBuildError",
     "CellCoaddError",
+    "CellCoaddFileExistsError",
     "CellCoaddFileNotFoundError",
     "CellCoaddFloatingPointError",
     "CellCoaddFormatError",
@@ -115,6 +121,7 @@ __all__ = [
     "InvalidCoaddError",
     "MappingError",
     "MetacalError",
+    "MissingDependencyError",
     "PsfCodecError",
     "PsfError",
     "ShearError",
@@ -176,10 +183,16 @@ class CellCoaddError(Exception):
     @property
     def facts(self) -> dict[str, Any]:
         """The facts given as keywords (those that are not ``None``), by name."""
-        return {name: value for name, value in vars(self).items() if value is not None}
+        # getattr for the common facts: ImportError keeps ``path`` in a slot, not in vars()
+        facts = {name: getattr(self, name) for name in _COMMON_FACTS}
+        facts.update(vars(self))
+        return {name: value for name, value in facts.items() if value is not None}
 
     def __reduce__(self) -> tuple[Any, ...]:
-        state = dict(vars(self))
+        state = {name: getattr(self, name) for name in _COMMON_FACTS}
+        state.update(vars(self))
+        if isinstance(self, ImportError):
+            state["name"] = self.name
         if isinstance(self, OSError):  # its slots; a None left unset keeps OSError's text
             slots = {"errno": self.errno, "strerror": self.strerror, "filename": self.filename}
             state.update({name: value for name, value in slots.items() if value is not None})
@@ -385,6 +398,10 @@ class CellCoaddFileNotFoundError(CellCoaddOSError, FileNotFoundError):
     """A file or directory that should exist does not (``path`` names it)."""
 
 
+class CellCoaddFileExistsError(CellCoaddOSError, FileExistsError):
+    """A write would replace the file ``path`` but ``overwrite=True`` was not given."""
+
+
 # -- builds and computations ----------------------------------------------------------------
 
 
@@ -406,6 +423,22 @@ class CellCoaddRuntimeError(CellCoaddError, RuntimeError):
 
 class CellCoaddFloatingPointError(CellCoaddError, FloatingPointError):
     """A computation produced non-finite numbers where finite ones are required."""
+
+
+class MissingDependencyError(CellCoaddError, ImportError):
+    """An optional dependency is not installed; the message says which extra to install.
+
+    ``package`` (also :attr:`ImportError.name`) is the module that could not be imported.
+    """
+
+    def __init__(self, message: str = "", *, package: str | None = None, **facts: Any) -> None:
+        super().__init__(message, **facts)
+        self.name = package
+
+    @property
+    def package(self) -> str | None:
+        """The module that could not be imported."""
+        return self.name
 
 
 class CellCoaddNotImplementedError(CellCoaddError, NotImplementedError):

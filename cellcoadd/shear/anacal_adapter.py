@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.errors import CellCoaddRangeError, ShearError
+from cellcoadd.errors import CellCoaddRangeError, MissingDependencyError, ShearError
 from cellcoadd.shear.response import paired_shear_bias
 
 #: One AnaCal measurement: ``flags`` (0: good, :data:`ANACAL_FAILED`), the ellipticities,
@@ -70,7 +70,7 @@ def require_anacal() -> Any:
     try:
         import anacal
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(_ANACAL_MISSING) from exc
+        raise MissingDependencyError(_ANACAL_MISSING, package="anacal") from exc
     return anacal
 
 

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.errors import CellCoaddRangeError, EmptyCellError, ShearError
+from cellcoadd.errors import CellCoaddRangeError, EmptyCellError, MissingDependencyError, ShearError
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.model.cell_coadd import CellCoadd
 
@@ -181,7 +181,7 @@ def to_ngmix(cell: CellCoadd, noise_index: int = 0) -> Any:
     try:
         import ngmix
     except ImportError as err:
-        raise ImportError(_NGMIX_MISSING) from err
+        raise MissingDependencyError(_NGMIX_MISSING, package="ngmix") from err
     observation = to_observation(cell, noise_index)
     jac = observation["jacobian"]
     derivatives = {key: jac[key] for key in ("dudrow", "dudcol", "dvdrow", "dvdcol")}

@@ -12,7 +12,7 @@ import numpy as np
 from astropy import units as u
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddValueError, InvalidCoaddError
+from cellcoadd.errors import CellCoaddValueError, InvalidCoaddError, MissingDependencyError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
@@ -78,9 +78,10 @@ def lsst_images_module() -> Any:
         import lsst.images as images
         import lsst.images.cells  # noqa: F401  (attribute of ``images`` from here on)
     except ImportError as err:
-        raise ImportError(
+        raise MissingDependencyError(
             f"converting to or from lsst-images needs the 'lsst-images' package: {EXTRA_HINT}"
-            f" ({err})"
+            f" ({err})",
+            package="lsst.images",
         ) from err
     return images
 
