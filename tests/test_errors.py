@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import ast
+import builtins
 import errno
 import inspect
+import json
 import pickle
+import re
+from pathlib import Path
+from typing import Any
 
+import h5py
 import pytest
+from coadd_factory import make_patch
 
 import cellcoadd
 import cellcoadd.errors as errors_module
@@ -22,6 +30,9 @@ from cellcoadd.errors import (
     ExposureError,
     MappingError,
 )
+from cellcoadd.geometry.box import Box
+from cellcoadd.io import api
+from cellcoadd.io._files.read_checks import is_file_failure
 
 ERROR_CLASSES = [
     obj
@@ -125,6 +136,7 @@ def test_os_errors_keep_errno_and_text() -> None:
         (errors_module.MetacalError, ValueError),
         (errors_module.EmptyCellError, ValueError),
         (errors_module.GeometryError, ValueError),
+        (errors_module.DamagedDataError, ValueError),
         (errors_module.CellCoaddTypeError, TypeError),
         (errors_module.CellCoaddKeyError, KeyError),
         (errors_module.CellCoaddIndexError, IndexError),
@@ -134,8 +146,200 @@ def test_os_errors_keep_errno_and_text() -> None:
         (errors_module.CellCoaddFloatingPointError, FloatingPointError),
         (CellCoaddOSError, OSError),
         (CellCoaddFileNotFoundError, FileNotFoundError),
+        (errors_module.CellCoaddFileExistsError, FileExistsError),
+        (errors_module.MissingDependencyError, ImportError),
     ],
 )
 def test_builtin_bases_still_catch(cls: type[CellCoaddError], builtin: type[Exception]) -> None:
     with pytest.raises(builtin):
         raise _make(cls)
+
+
+# -- no builtin exception is raised by the library ------------------------------------------
+
+PACKAGE = Path(cellcoadd.__file__).resolve().parent
+BUILTIN_EXCEPTIONS = {
+    name
+    for name, obj in vars(builtins).items()
+    if inspect.isclass(obj) and issubclass(obj, BaseException)
+}
+#: Functions of Python's attribute protocol (module ``__getattr__``, descriptors), which
+#: must raise a plain AttributeError.
+ATTRIBUTE_PROTOCOL = re.compile(r"__get__|__getattr__|__getattribute__|getattr_")
+
+
+def _is_abstract_body(function: ast.AST, node: ast.Raise) -> bool:
+    """``raise NotImplementedError`` as the whole body (after a docstring) of a method."""
+    if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        return False
+    body = function.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        body = body[1:]
+    return body == [node]
+
+
+def builtin_exception_sites(source: str) -> list[tuple[int, str]]:
+    """``(line, name)`` of every builtin exception the code raises or builds (``raise
+    ValueError(...)``, ``raise KeyError``, ``return OSError(...)``), bar the two allowed:
+    ``NotImplementedError`` as the body of an abstract method and ``AttributeError`` in the
+    attribute protocol."""
+    tree = ast.parse(source)
+    parents = {child: parent for parent in ast.walk(tree) for child in ast.iter_child_nodes(parent)}
+
+    def enclosing_function(node: ast.AST) -> ast.AST | None:
+        while node in parents:
+            node = parents[node]
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                return node
+        return None
+
+    sites: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Name):
+            name, at = node.exc.id, node  # raise ValueError (no call)
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+            name, at = node.func.id, node  # ValueError(...) raised, returned or stored
+        else:
+            continue
+        if name not in BUILTIN_EXCEPTIONS:
+            continue
+        function = enclosing_function(at)
+        if name == "NotImplementedError" and function is not None:
+            statement = parents.get(at) if isinstance(at, ast.Call) else at
+            if isinstance(statement, ast.Raise) and _is_abstract_body(function, statement):
+                continue
+        if name == "AttributeError" and isinstance(function, ast.FunctionDef):
+            if ATTRIBUTE_PROTOCOL.fullmatch(function.name):
+                continue
+        sites.append((at.lineno, name))
+    return sorted(sites)
+
+
+def test_the_scan_finds_what_it_must() -> None:
+    source = (
+        "class A:\n"
+        "    def abstract(self):\n"
+        '        """Doc."""\n'
+        "        raise NotImplementedError\n"
+        "    def __get__(self, obj, owner=None):\n"
+        "        raise AttributeError('x')\n"
+        "def f(x):\n"
+        "    if x:\n"
+        "        raise ValueError(f'bad {x}')\n"
+        "    if x is None:\n"
+        "        raise KeyError\n"
+        "    if x == 2:\n"
+        "        raise NotImplementedError('not yet')\n"
+        "    error = TypeError('stored')\n"
+        "    return OSError(28, 'disk full')\n"
+        "def g():\n"
+        "    raise AttributeError('not the protocol')\n"
+    )
+    assert builtin_exception_sites(source) == [
+        (9, "ValueError"),
+        (11, "KeyError"),
+        (13, "NotImplementedError"),
+        (14, "TypeError"),
+        (15, "OSError"),
+        (17, "AttributeError"),
+    ]
+
+
+def test_library_raises_no_builtin_exception() -> None:
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for line, name in builtin_exception_sites(path.read_text()):
+            found.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {name}")
+    assert not found, "use a class of cellcoadd/errors.py instead:\n" + "\n".join(found)
+
+
+# -- readers: damaged files are format errors, programming errors are not ---------------------
+
+
+@pytest.fixture(scope="module")
+def coadd_files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, bytes]:
+    patch = make_patch(seed=3)
+    folder = tmp_path_factory.mktemp("coadds")
+    return {name: api.write(patch, folder / name).read_bytes() for name in ("c.fits", "c.h5")}
+
+
+@pytest.mark.parametrize("name", ["c.fits", "c.h5"])
+def test_a_truncated_file_is_still_a_format_error(tmp_path, coadd_files, name) -> None:
+    path = tmp_path / name
+    raw = coadd_files[name]
+    for cut in (len(raw) // 3, len(raw) - 2880):
+        path.write_bytes(raw[:cut])
+        with pytest.raises(CellCoaddFormatError) as info:
+            api.read(path)
+        assert info.value.path == str(path)
+
+
+@pytest.mark.parametrize(
+    ("name", "module", "function"),
+    [
+        ("c.fits", "cellcoadd.io.coadd.fits_format", "decode_metadata"),
+        ("c.h5", "cellcoadd.io.coadd.hdf5_format", "decode_metadata"),
+        ("c.fits", "cellcoadd.io.coadd.fits_format", "check_cell_geometry"),
+        ("c.h5", "cellcoadd.io.coadd.hdf5_format", "check_cell_geometry"),
+    ],
+)
+def test_programming_errors_in_readers_are_not_damaged_files(
+    tmp_path, monkeypatch, coadd_files, name, module, function
+) -> None:
+    path = tmp_path / name
+    path.write_bytes(coadd_files[name])
+
+    def attribute_bug(*args: Any) -> None:
+        raise AttributeError("'NoneType' object has no attribute 'skymap_config'")
+
+    monkeypatch.setattr(f"{module}.{function}", attribute_bug)
+    with pytest.raises(AttributeError, match="no attribute 'skymap_config'"):
+        api.read(path)
+
+    def takes_nothing() -> None:  # called with arguments: a TypeError in our reader's frame
+        return None
+
+    monkeypatch.setattr(f"{module}.{function}", takes_nothing)
+    with pytest.raises(TypeError, match="takes 0 positional arguments") as info:
+        api.read(path)
+    assert not isinstance(info.value, CellCoaddError)
+    path.write_bytes(coadd_files[name])  # the damaged-file path still works afterwards
+    monkeypatch.undo()
+    assert api.read(path).metadata.n_noise == 2
+
+
+def test_which_failures_are_the_files_fault() -> None:
+    def raised(action: Any) -> BaseException:
+        try:
+            action()
+        except Exception as err:
+            return err
+        raise AssertionError("nothing was raised")
+
+    # raised inside a library (json's own code): the data's fault
+    assert is_file_failure(raised(lambda: json.loads(b"\xff\xfe{")))
+    assert is_file_failure(raised(lambda: json.JSONDecoder().decode(5)))  # TypeError in json
+    assert is_file_failure(OSError(5, "Input/output error"))
+    assert is_file_failure(raised(lambda: {}["MAGZERO"]))
+    assert is_file_failure(errors_module.DamagedDataError("DATASUM mismatch", hdu="IMAGE"))
+    # bugs: never blamed on the file
+    assert not is_file_failure(raised(lambda: None.shape))  # type: ignore[attr-defined]
+    assert not is_file_failure(raised(lambda: undefined_name))  # type: ignore[name-defined]  # noqa: F821
+    assert not is_file_failure(AssertionError("invariant"))
+    bug = raised(lambda: Box.enclosing(5))  # a TypeError raised by cellcoadd's own code
+    assert isinstance(bug, TypeError) and not is_file_failure(bug)
+
+
+def test_inner_checks_keep_their_facts_in_the_format_error(tmp_path, coadd_files) -> None:
+    path = tmp_path / "c.h5"
+    path.write_bytes(coadd_files["c.h5"])
+    with h5py.File(path, "r+") as h5:
+        first = sorted(h5["cells"])[0]
+        group = h5["cells"][first]
+        group["image_copy"] = group["image"]  # a second hard link to the image plane
+        where = group.name
+    with pytest.raises(CellCoaddFormatError, match=r"unexpected objects \['image_copy'\]") as info:
+        api.read(path)
+    assert info.value.path == str(path)
+    assert info.value.hdu == where
+    assert isinstance(info.value.__cause__, errors_module.DamagedDataError)
