@@ -42,6 +42,10 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
   ``AttributeError`` only where Python's protocols ask for it (module ``__getattr__``,
   descriptors). No other builtin exception is raised directly (``tests/test_errors.py``).
 
+Raised inside a pydantic validator, an error that is a ``ValueError`` reaches the caller
+wrapped in pydantic's ``ValidationError`` (itself a ``ValueError``); the original is in
+its ``errors()[i]["ctx"]["error"]``.
+
 Facts as attributes
 -------------------
 Every error takes the facts it is about as keyword arguments and keeps them as attributes,

@@ -343,3 +343,26 @@ def test_inner_checks_keep_their_facts_in_the_format_error(tmp_path, coadd_files
     assert info.value.path == str(path)
     assert info.value.hdu == where
     assert isinstance(info.value.__cause__, errors_module.DamagedDataError)
+
+
+def test_exposure_reader_lets_programming_errors_through(tmp_path, monkeypatch) -> None:
+    from exposure_factory import make_exposure
+
+    from cellcoadd.io import read_exposure, write_exposure
+
+    path = tmp_path / "visit_12_det_34.fits"
+    write_exposure(make_exposure((30.0, -5.0), shape=(48, 40), visit=12, detector=34), path)
+
+    def attribute_bug(data: Any) -> dict[str, Any]:
+        raise AttributeError("'NoneType' object has no attribute 'tobytes'")
+
+    monkeypatch.setattr("cellcoadd.io.exposures.exposure_io._read_meta", attribute_bug)
+    with pytest.raises(AttributeError, match="no attribute 'tobytes'"):
+        read_exposure(path)
+    monkeypatch.undo()
+    assert read_exposure(path).visit == 12
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])  # truncated: still the file's fault
+    with pytest.raises(CellCoaddFormatError) as info:
+        read_exposure(path)
+    assert info.value.path == str(path)

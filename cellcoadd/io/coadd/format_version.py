@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddValueError
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchMetadata, parse_format_version
 
 #: Marker identifying a cellcoadd patch file (FITS keyword CCFORMAT, HDF5 attribute).
@@ -40,7 +40,7 @@ def check_format_version(path: str, version: Any) -> tuple[int, int]:
         version = version.decode("ascii", errors="replace")
     try:
         major, minor = parse_format_version(str(version))
-    except ValueError as err:
+    except CellCoaddValueError as err:
         raise CellCoaddFormatError(path, str(err)) from None
     ours = parse_format_version(FORMAT_VERSION)[0]
     if major != ours:
