@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "cellcoadd"
 LEVEL = {
     "_version": 0,
     "_lazy": 0,
-    "errors": 0,
+    "errors": -1,  # below everything: every layer raises its classes, it imports none
     "geometry": 0,
     "model": 1,
     "io": 2,
@@ -74,6 +74,7 @@ def test_kernels_do_no_io(path):
     for module, line in _imported_modules(path):
         top = module.split(".")[0]
         inside = module.startswith("cellcoadd.builder.kernels") or module in (
+            "cellcoadd.errors",  # argument checks raise the library's errors
             "cellcoadd.geometry.box",
         )
         assert top in allowed or inside, f"{path}:{line}: a kernel imports {module}"
