@@ -152,3 +152,35 @@ def test_no_import_cycles():
         if name not in state:
             visit(name, [name])
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+@pytest.mark.parametrize("layer", ["model", "sim", "analysis", "shear", "pipelines"])
+def test_modules_do_not_re_export(layer):
+    """A module's ``__all__`` lists what it defines: names from another module are imported
+    from their home (packages' ``__init__`` gather them; error classes may be re-exported
+    where they are raised)."""
+    for path in sorted((PACKAGE / layer).rglob("*.py")):
+        if path.name == "__init__.py":
+            continue
+        tree = ast.parse(path.read_text())
+        imported = {
+            alias.asname or alias.name: node.module
+            for node in tree.body
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("cellcoadd.")
+            for alias in node.names
+        }
+        exported = [
+            element.value
+            for node in tree.body
+            if isinstance(node, ast.Assign)
+            and any(getattr(target, "id", None) == "__all__" for target in node.targets)
+            and isinstance(node.value, ast.List)
+            for element in node.value.elts
+            if isinstance(element, ast.Constant)
+        ]
+        again = [
+            name
+            for name in exported
+            if imported.get(name, "cellcoadd.errors") != "cellcoadd.errors"
+        ]
+        assert not again, f"{path}: __all__ re-exports {again}"

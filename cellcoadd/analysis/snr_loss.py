@@ -37,11 +37,8 @@ from cellcoadd.analysis.gaussian_epochs import (
 __all__ = [
     "SnrLossTable",
     "coadd_template",
-    "continuous_gaussian_ratio",
-    "epoch_psf_sigmas",
     "exact_ratio_curve",
     "exact_variance_ratio",
-    "gaussian_templates",
     "lsst_snr_loss",
     "monte_carlo_ratio",
     "toy_variance_ratio",

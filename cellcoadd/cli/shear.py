@@ -212,7 +212,8 @@ def validate_shear(
     and a small shear (--shear 0.001: no third-order terms).
     """
     from cellcoadd.errors import ConfigError
-    from cellcoadd.pipelines.shear_validation import RESULT_KEYS, format_bias_table
+    from cellcoadd.pipelines.bias_table import format_bias_table
+    from cellcoadd.pipelines.shear_validation import RESULT_KEYS
     from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
     from cellcoadd.pipelines.validation_settings import check_method_mode
 

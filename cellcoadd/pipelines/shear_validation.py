@@ -34,12 +34,6 @@ from cellcoadd.builder.executors import resolve_executor
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
-    M_REQUIREMENT,
-    PAPER_LABELS,
-    PAPER_TABLE1,
-    PAPER_TABLE1_ROWS,
-    format_bias_table,
-    paper_value,
     summary_fields,
 )
 from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
@@ -49,7 +43,6 @@ from cellcoadd.pipelines.validation_settings import (
     Mode,
     ValidationSettings,
     check_method_mode,
-    expected_inputs,
     stamp_cell,
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
@@ -329,16 +322,8 @@ def validate_shear(
 
 
 __all__ = [
-    "M_REQUIREMENT",
-    "PAPER_LABELS",
-    "PAPER_TABLE1",
-    "PAPER_TABLE1_ROWS",
     "RESULT_KEYS",
-    "PairCatalogue",
-    "expected_inputs",
-    "format_bias_table",
     "measure_pairs",
-    "paper_value",
     "run_pairs",
     "summarize",
     "validate_shear",

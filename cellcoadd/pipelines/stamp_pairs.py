@@ -72,13 +72,7 @@ from cellcoadd.pipelines.epoch_measurements import (
     measure_multi_epoch,
     measure_single_epoch,
 )
-from cellcoadd.pipelines.validation_settings import (
-    METHODS,
-    MODES,
-    ValidationSettings,
-    largest_cell_inner,
-    stamp_cell,
-)
+from cellcoadd.pipelines.validation_settings import ValidationSettings, stamp_cell
 from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
@@ -140,7 +134,7 @@ class PairCatalogue:
         For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
         ``+g`` and ``-g`` members, aligned with ``index`` (what
         :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
-        :data:`~cellcoadd.pipelines.stamp_pairs.BFD_DTYPE` rows under ``"bfd"``.
+        :data:`~cellcoadd.pipelines.epoch_measurements.BFD_DTYPE` rows under ``"bfd"``.
     noise_sigma, snr, n_inputs, cpu_seconds : ndarray
         Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
     """
@@ -457,17 +451,10 @@ def measure_pair(
 
 
 __all__ = [
-    "BFD_DTYPE",
-    "METHODS",
-    "MODES",
     "NO_COADD",
     "PairCatalogue",
     "PairMeasurement",
-    "ValidationSettings",
     "bfd_noise_sigma",
     "bfd_templates",
-    "epoch_psf_image",
-    "largest_cell_inner",
     "measure_pair",
-    "stamp_cell",
 ]
