@@ -19,8 +19,8 @@ from cellcoadd.pipelines import (
     largest_cell_inner,
     validate_shear,
 )
-from cellcoadd.pipelines.shear_validation import RESULT_KEYS, PairCatalogue, measure_pairs
-from cellcoadd.pipelines.stamp_pairs import measure_pair
+from cellcoadd.pipelines.shear_validation import RESULT_KEYS, measure_pairs
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
