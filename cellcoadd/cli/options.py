@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import click
 
@@ -23,10 +22,14 @@ def load_skymap(path: str | None) -> SkyMap:
     """A sky map from a ``skymap.json`` file, or the default full-sky rings when None."""
     if path is None:
         return SkyMap.rings()
+    from cellcoadd.errors import CellCoaddFormatError
+    from cellcoadd.io._files.path_gate import read_bytes
+
     try:
-        return SkyMap.from_json(Path(path).read_text())
-    except OSError as err:
-        raise click.ClickException(f"cannot read sky map {path}: {err.strerror}") from None
+        text = read_bytes(path, what="sky map", max_bytes=16 * 1024 * 1024).decode("utf-8")
+        return SkyMap.from_json(text)
+    except (OSError, CellCoaddFormatError) as err:
+        raise click.ClickException(f"cannot read sky map {path}: {err}") from None
     except ValueError as err:
         raise click.ClickException(f"{path} is not a valid sky map file: {err}") from None
 

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 
 
@@ -26,12 +27,6 @@ def reading_errors(path: str, what: str) -> Iterator[None]:
 
 def check_path_readable(path: str) -> int:
     """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty
-    or not a regular file (a directory, a pipe or a device could block or mislead a reader)."""
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"{path}: no such file")
-    if not os.path.isfile(path):
-        raise CellCoaddFormatError(path, "not a regular file")
-    size = os.path.getsize(path)
-    if size == 0:
-        raise CellCoaddFormatError(path, "the file is empty")
-    return size
+    or not a regular file (a directory, a pipe or a device could block or mislead a reader;
+    :func:`~cellcoadd.io._files.path_gate.gate_read`)."""
+    return os.path.getsize(gate_read(path))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import fitsio
@@ -13,8 +12,9 @@ import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.headers import read_header
-from cellcoadd.io._fits.paths import cfitsio_path, starts_like_fits
+from cellcoadd.io._fits.paths import starts_like_fits
 from cellcoadd.io.exposures.mef_layout import HduRef
 
 
@@ -89,20 +89,27 @@ class MefFile:
 def open_mef(path: str) -> Iterator[MefFile]:
     """``with open_mef(path) as mef``: the :class:`MefFile` of ``path``, open for the block.
 
+    ``path`` passes the path gate (:mod:`cellcoadd.io._files.path_gate`) and must start
+    like a FITS file before CFITSIO opens it.
+
     Raises
     ------
     CellCoaddFormatError
         When ``path`` is not a file or not a readable FITS file.
     """
-    if not Path(path).is_file():
-        raise CellCoaddFormatError(path, "no such file")
+    try:
+        resolved = gate_read(path, what="exposure file", fits=True)
+    except FileNotFoundError:
+        raise CellCoaddFormatError(path, "no such file") from None
+    if not starts_like_fits(resolved):
+        # CFITSIO would inflate a gzip (or compress, bzip2) stream into memory first
+        raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
     fits_file: Any = None
     descriptor: int | None = None
     try:
         try:
-            fits_file = fitsio.FITS(cfitsio_path(path))
-            if starts_like_fits(path):  # not inflated by CFITSIO: its bytes are the HDUs
-                descriptor = os.open(path, os.O_RDONLY)
+            descriptor = os.open(resolved, os.O_RDONLY)
+            fits_file = fitsio.FITS(resolved)
         except (OSError, ValueError) as err:
             raise CellCoaddFormatError(path, f"not a readable FITS file ({err})") from None
         yield MefFile(path, fits_file, descriptor)

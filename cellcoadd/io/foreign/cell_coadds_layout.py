@@ -31,6 +31,7 @@ from astropy.wcs import WCS
 
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._fits.checksums import DATACRC_PLACEHOLDER
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io._fits.wcs_header import wcs_cards
 from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import cell_record_json
@@ -406,7 +407,7 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
     stored = _stored_cells(patch)
     payload, version = format_version.metadata_payload(meta)
     cards, _ = wcs_cards(_tract_wcs(patch))
-    with fitsio.FITS(path, "rw", clobber=True) as fits:
+    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
         fits.write(None, header=[*cards, DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         dtype = _table_dtype(meta)

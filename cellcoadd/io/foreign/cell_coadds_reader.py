@@ -23,6 +23,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits.checksums import verify_hdu
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io.coadd.cell_records import expected_shapes, parse_cell_record
 from cellcoadd.io.coadd.coadd_file import CoaddFile
 from cellcoadd.io.coadd.fits_format import check_fits_path
@@ -70,7 +71,7 @@ class CellCoaddsFile(CoaddFile):
         self._checked: set[int] = set()
         try:
             with reading_errors(path, "cannot open the FITS file"):
-                self._fits = fitsio.FITS(path)
+                self._fits = fitsio.FITS(cfitsio_path(path))
                 self._numbers = {
                     hdu.get_extname().upper(): n for n, hdu in enumerate(self._fits) if n > 1
                 }
