@@ -16,8 +16,9 @@ import pytest
 from astropy.wcs import WCS, Sip
 from survey_psf_factory import build_piff_model, write_psfex_file
 
-from cellcoadd.errors import CellCoaddFormatError, PsfError
+from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
+from cellcoadd.io import read_piff, read_psfex
 from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 from cellcoadd.io.exposures.psf_codec import PsfCodecError, decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
@@ -388,7 +389,7 @@ def small_psfex(tmp_path_factory):
 
 
 def test_psfex_model_is_stored_whole(tmp_path, small_psfex):
-    model = PsfexPsf(small_psfex)
+    model = read_psfex(small_psfex)
     exposure = make_exposure(model)
     path = write_exposure(exposure, tmp_path / "e.fits")
     kind, desc = psf_meta(path)
@@ -408,7 +409,7 @@ def test_psfex_model_is_stored_whole(tmp_path, small_psfex):
 
 
 def test_tampered_psfex_copy_is_refused(tmp_path, small_psfex):
-    path = write_exposure(make_exposure(PsfexPsf(small_psfex)), tmp_path / "e.fits")
+    path = write_exposure(make_exposure(read_psfex(small_psfex)), tmp_path / "e.fits")
 
     def tamper(name, data, header):
         if name == "PSF":
@@ -437,13 +438,13 @@ def small_piff(tmp_path_factory):
 
 
 def test_piff_model_is_stored_whole(tmp_path, small_piff):
-    model = PiffPsf(small_piff, chipnum=7, origin=0)
+    model = read_piff(small_piff, trusted=True, chipnum=7, origin=0)
     exposure = make_exposure(model)
     path = write_exposure(exposure, tmp_path / "e.fits")
     kind, desc = psf_meta(path)
     assert kind == "PIFF"
     assert (desc["chipnum"], desc["origin"], desc["file_name"]) == (7, 0, "ccd7.piff")
-    back = read_exposure(path)
+    back = read_exposure(path, trust_psf=True)
     assert isinstance(back.psf, PiffPsf) and back.psf == model
     assert (back.psf.chipnum, back.psf.origin) == (7, 0)
     assert back.psf.data == small_piff.read_bytes()
@@ -452,13 +453,17 @@ def test_piff_model_is_stored_whole(tmp_path, small_piff):
         np.testing.assert_array_equal(back.draw_psf(x, y, box), exposure.draw_psf(x, y, box))
 
 
-def test_piff_exposure_opens_without_piff(tmp_path, small_piff, monkeypatch):
-    path = write_exposure(make_exposure(PiffPsf(small_piff)), tmp_path / "e.fits")
+def test_piff_exposure_needs_trust_and_piff(tmp_path, small_piff, monkeypatch):
+    """A stored Piff model (pickled objects) is loaded only when the reader trusts the
+    file, and then needs Piff: both refusals name the file, before any build."""
+    path = write_exposure(make_exposure(read_piff(small_piff, trusted=True)), tmp_path / "e.fits")
+    with pytest.raises(CellCoaddFormatError, match="pickled") as info:
+        read_exposure(path)
+    assert "e.fits" in str(info.value) and "ccd7.piff" in str(info.value)
+    assert isinstance(read_exposure(path, trust_psf=True).psf, PiffPsf)
     monkeypatch.setitem(sys.modules, "piff", None)  # import piff -> ImportError
-    back = read_exposure(path)  # opening needs no Piff
-    assert isinstance(back.psf, PiffPsf)
-    with pytest.raises(PsfError, match=r"cellcoadd\[piff\]"):
-        back.draw_psf(40.0, 30.0, _model_box(40.0, 30.0))
+    with pytest.raises(CellCoaddFormatError, match=r"cellcoadd\[piff\]"):
+        read_exposure(path, trust_psf=True)
 
 
 def _unlisted_profile() -> galsim.GSObject:
@@ -609,7 +614,7 @@ def _e2e_build(tmp_path, psf_model, draw_star) -> list[tuple[float, float]]:
         )
         exposures.append(exposure)
         paths.append(write_exposure(exposure, tmp_path / f"visit{visit}.fits"))
-    from_files = [read_exposure(path) for path in paths]
+    from_files = [read_exposure(path, trust_psf=True) for path in paths]
     assert all(type(e.psf) is type(psf_model) and e.psf == psf_model for e in from_files)
     results = []
     for cell in cells:
@@ -642,7 +647,7 @@ def test_psfex_exposure_files_build_the_star_as_the_coadd_psf(tmp_path):
         psfex.getPSF(pos).drawImage(stamp, center=pos, method="no_pixel")
         return stamp.array
 
-    for t_error, residual in _e2e_build(tmp_path, PsfexPsf(info.path), draw_star):
+    for t_error, residual in _e2e_build(tmp_path, read_psfex(info.path), draw_star):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)
 
 
@@ -662,5 +667,5 @@ def test_piff_exposure_files_build_the_star_as_the_coadd_psf(tmp_path):
         psf.draw(x + 1, y + 1, image=stamp, center=(x + 1, y + 1))
         return stamp.array
 
-    for t_error, residual in _e2e_build(tmp_path, PiffPsf(info.path), draw_star):
+    for t_error, residual in _e2e_build(tmp_path, read_piff(info.path, trusted=True), draw_star):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)

@@ -15,6 +15,7 @@ Build configurations are TOML or JSON files holding the fields of
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import sys
@@ -24,9 +25,10 @@ from typing import Any
 from pydantic import ValidationError
 
 from cellcoadd.errors import CellCoaddFormatError, ConfigError
+from cellcoadd.io._files.path_gate import read_bytes
+from cellcoadd.io.exposures.psf_files import read_psf_file
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.manifest import Manifest, ManifestEntry
-from cellcoadd.model.psf import PiffPsf, PsfexPsf, PsfModel
 from cellcoadd.model.sources import ExposureSource
 
 if sys.version_info >= (3, 11):
@@ -34,16 +36,16 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+#: Largest manifest or configuration file read (bytes).
+MAX_MANIFEST_BYTES = 64 * 1024 * 1024
+
 _INT_FIELDS = ("visit", "detector")
 _FLOAT_FIELDS = ("zero_point",)
 
 
 def _load_mapping(path: Path, what: str) -> Any:
     """The TOML or JSON document in ``path``."""
-    try:
-        text = path.read_bytes()
-    except OSError as err:
-        raise CellCoaddFormatError(path, f"cannot read the {what}: {err.strerror}") from err
+    text = read_bytes(path, what=what, max_bytes=MAX_MANIFEST_BYTES)
     try:
         if path.suffix.lower() == ".toml":
             return tomllib.loads(text.decode("utf-8"))
@@ -76,10 +78,10 @@ def read_manifest(path: str | os.PathLike[str]) -> Manifest:
 
 
 def _csv_entries(path: Path) -> list[dict[str, Any]]:
+    data = read_bytes(path, what="manifest", max_bytes=MAX_MANIFEST_BYTES)
     try:
-        with open(path, newline="", encoding="utf-8") as file:
-            rows = list(csv.DictReader(file))
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        rows = list(csv.DictReader(io.StringIO(data.decode("utf-8"), newline="")))
+    except (UnicodeDecodeError, csv.Error) as err:
         raise CellCoaddFormatError(path, f"cannot read the manifest: {err}") from err
     entries = []
     for line, row in enumerate(rows, start=2):
@@ -127,11 +129,6 @@ def build_config_toml(config: BuildConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def psf_model_file(path: str | os.PathLike[str]) -> PsfModel:
-    """The PSF model in a file: ``.psf`` is PSFEx, anything else Piff."""
-    return PsfexPsf(path) if str(path).lower().endswith(".psf") else PiffPsf(path)
-
-
 def sources_from_manifest(
     manifest: Manifest, base: str | os.PathLike[str] = "."
 ) -> list[ExposureSource]:
@@ -150,7 +147,7 @@ def _source(entry: ManifestEntry, base: Path) -> ExposureSource:
 
     path = base / entry.path
     if entry.layout == "cellcoadd":
-        return ExposureFile(path)
+        return ExposureFile(path, trust_psf=entry.trust_psf)
     if entry.psf is None:
         raise CellCoaddFormatError(path, f"the {entry.layout} layout needs a psf model file")
     layout = (
@@ -161,7 +158,7 @@ def _source(entry: ManifestEntry, base: Path) -> ExposureSource:
     return MefExposureFile(
         path,
         layout,
-        psf_model_file(base / entry.psf),
+        read_psf_file(base / entry.psf, trusted=entry.trust_psf),
         zero_point=entry.zero_point,
         background=None if entry.background is None else base / entry.background,
         visit=entry.visit,

@@ -27,29 +27,26 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, ExposureError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
 from cellcoadd.io.exposures.mef_file import MefFile, open_mef
 from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
+from cellcoadd.io.exposures.psf_files import read_psf_file
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.psf import PiffPsf, PsfexPsf
 from cellcoadd.model.sources import ExposureHeader, ExposureSource, cutout_box
 
 PathLike = str | os.PathLike[str]
 
 
-def psf_from(psf: PsfLike | PathLike) -> PsfLike:
-    """A PSF model from a path (``.psf``: PSFEx, anything else: Piff); others as given."""
+def psf_from(psf: PsfLike | PathLike, *, trust_psf: bool = False) -> PsfLike:
+    """A PSF model from a path (PSFEx or Piff, by content; Piff only with ``trust_psf``,
+    see :mod:`cellcoadd.io.exposures.psf_files`); other forms as given."""
     if not isinstance(psf, (str, os.PathLike)):
         return psf
-    path = os.fspath(psf)
-    try:
-        return PsfexPsf(path) if path.lower().endswith(".psf") else PiffPsf(path)
-    except PsfError as err:
-        raise CellCoaddFormatError(path, f"cannot read the PSF model ({err})") from None
+    return read_psf_file(psf, trusted=trust_psf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,9 +103,9 @@ class MefExposureFile(ExposureSource):
         Where things are (:data:`~cellcoadd.io.exposures.mef_layout.LSST_LAYOUT`,
         :data:`~cellcoadd.io.exposures.mef_layout.DES_LAYOUT` or your own).
     psf : PsfModel, other PSF form of Exposure, or path
-        The PSF model; a path ending in ``.psf`` is read as a PSFEx model, any other path
-        as a Piff model (read now: errors come early, and the model's bytes travel with
-        the source).
+        The PSF model; a path is read now as a PSFEx or Piff model file, recognised by its
+        content (:func:`cellcoadd.io.read_psf_file`): errors come early, and the parsed
+        model travels with the source.
     zero_point : float, optional
         Used when no keyword of ``layout.zero_point_keys`` gives one.
     background : path-like, optional
@@ -117,6 +114,9 @@ class MefExposureFile(ExposureSource):
         Identity, instead of the header's.
     band : str, optional
         Band, instead of the header's.
+    trust_psf : bool
+        Allow a ``psf`` path to be a Piff file, which holds pickled objects that run code
+        when loaded: only for files you trust.
     """
 
     def __init__(
@@ -130,12 +130,13 @@ class MefExposureFile(ExposureSource):
         visit: int | None = None,
         detector: int | None = None,
         band: str | None = None,
+        trust_psf: bool = False,
     ):
         if not isinstance(layout, MefLayout):
             raise TypeError(f"layout must be a MefLayout, got {layout!r}")
         self.path = os.fspath(path)
         self.layout = layout
-        self.psf = psf_from(psf)
+        self.psf = psf_from(psf, trust_psf=trust_psf)
         self.zero_point = zero_point
         self.background = os.fspath(background) if background is not None else None
         self.visit = visit

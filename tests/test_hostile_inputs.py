@@ -1,0 +1,317 @@
+"""Hostile inputs, round 3: each finding of the issue, tried as it was found.
+
+Files are written by the tests themselves in survey shapes (LSST ``visit_image`` with a
+TAN-SIP WCS, DES ``SCI``/``MSK``/``WGT`` with the real CCD's TPV header, PSFEx ``.psf``
+tables, Piff files, TOML/JSON/CSV manifests). Every read that could hang runs in a thread
+with a deadline.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import gzip
+import json
+import os
+import shutil
+from pathlib import Path
+
+import fitsio
+import galsim
+import numpy as np
+import pytest
+from survey_psf_factory import write_psfex_file
+from test_survey_readers import (
+    DES_PSF,
+    LSST_NX,
+    LSST_NY,
+    _need_des_files,
+    lsst_planes,
+    write_lsst,
+)
+
+from cellcoadd.errors import CellCoaddFormatError, PsfError
+from cellcoadd.io import (
+    read_build_config,
+    read_exposure,
+    read_lsst_exposure,
+    read_manifest,
+    read_piff,
+    read_psf_file,
+    read_psfex,
+    sources_from_manifest,
+    write_exposure,
+)
+from cellcoadd.io._files.path_gate import gate_read, gate_write
+from cellcoadd.model.psf import GalSimPsf, PiffPsf, PsfexPsf
+
+DEADLINE = 20.0  # seconds: a read that blocks (FIFO) fails the test instead of hanging it
+
+
+def _within_deadline(function, *args, **kwargs):
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+    future = pool.submit(function, *args, **kwargs)
+    try:
+        return future.result(timeout=DEADLINE)
+    finally:
+        pool.shutdown(wait=False)
+
+
+def _refused(function, *args, match: str | None = None, **kwargs) -> CellCoaddFormatError:
+    with pytest.raises(CellCoaddFormatError) as info:
+        _within_deadline(function, *args, **kwargs)
+    if match is not None:
+        assert match in str(info.value), str(info.value)
+    return info.value
+
+
+@pytest.fixture(scope="module")
+def psfex_path(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("psfex")
+    return write_psfex_file(root / "ccd3.psf", nx=LSST_NX, ny=LSST_NY, pixel_scale=0.2).path
+
+
+@pytest.fixture(scope="module")
+def lsst_file(tmp_path_factory) -> Path:
+    return write_lsst(tmp_path_factory.mktemp("lsst") / "visit_image.fits")
+
+
+def _piff_like(path: Path, marker: Path) -> Path:
+    """A file shaped like a Piff model whose 'WCS' is a pickle that would create
+    ``marker`` when loaded (the attack of the issue)."""
+    import pickle
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (marker,))
+
+    blob = np.frombuffer(pickle.dumps(Payload()), dtype=np.uint8)
+    with fitsio.FITS(path, "rw", clobber=True) as fits:
+        fits.write(None)
+        table = np.zeros(1, dtype=[("type", "S10"), ("piff_version", "S5")])
+        table["type"], table["piff_version"] = b"Simple", b"1.7.0"
+        fits.write(table, extname="psf", header={"PIFF_VERSION": "1.7.0"})
+        wcs = np.zeros(1, dtype=[("chipnums", "i8"), ("wcs_str_0000", "u1", blob.size)])
+        wcs["wcs_str_0000"][0] = blob
+        fits.write(wcs, extname="psf_wcs")
+    return path
+
+
+# -- 1. code execution ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["model.piff", "model.fits", "model.psf", "model"])
+def test_a_piff_file_is_never_unpickled_without_trust(tmp_path, name):
+    """Issue 28.1: any manifest psf not ending in .psf was read as Piff, and Piff unpickles
+    its WCS. Now the kind comes from the content, and Piff needs ``trusted=True``."""
+    marker = tmp_path / "pwned"
+    path = _piff_like(tmp_path / name, marker)
+    error = _refused(read_psf_file, path, match="pickled")
+    assert name in str(error)
+    _refused(read_piff, path, match="trusted=True")
+    assert not marker.exists()
+
+
+def test_a_manifest_piff_psf_needs_trust_psf(tmp_path, lsst_file):
+    marker = tmp_path / "pwned"
+    _piff_like(tmp_path / "calexp.psf_model", marker)
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    entry = {"path": "calexp.fits", "layout": "lsst", "psf": "calexp.psf_model"}
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"exposures": [entry]}))
+    with pytest.raises(CellCoaddFormatError, match="pickled") as info:
+        sources_from_manifest(read_manifest(manifest), tmp_path)
+    assert "calexp.psf_model" in str(info.value)
+    assert not marker.exists()
+    assert read_manifest(manifest).exposures[0].trust_psf is False
+
+
+def test_psf_files_are_recognised_by_content(tmp_path, psfex_path):
+    """A PSFEx table named ``.piff`` is PSFEx; junk named ``.psf`` is refused on reading."""
+    renamed = tmp_path / "not_a.piff"
+    shutil.copy(psfex_path, renamed)
+    model = read_psf_file(renamed)
+    assert isinstance(model, PsfexPsf) and model == read_psfex(psfex_path)
+    junk = tmp_path / "junk.psf"
+    junk.write_bytes(os.urandom(5000))
+    _refused(read_psf_file, junk, match="not a FITS file")
+    image_only = tmp_path / "image.psf"
+    fitsio.write(image_only, np.zeros((5, 5)), clobber=True)
+    _refused(read_psf_file, image_only, match="not a PSF model file")
+
+
+def test_model_classes_never_read_files(psfex_path):
+    with pytest.raises(PsfError, match="read_psfex"):
+        PsfexPsf(psfex_path)  # type: ignore[arg-type]
+    with pytest.raises(PsfError, match="read_piff"):
+        PiffPsf(str(psfex_path))
+
+
+def test_trusted_piff_still_reads(tmp_path):
+    pytest.importorskip("piff")
+    from survey_psf_factory import build_piff_model
+
+    path = build_piff_model(tmp_path / "m.bin", nx=80, ny=60, nstars_side=(3, 3)).path
+    model = read_psf_file(path, trusted=True)
+    assert isinstance(model, PiffPsf)
+    drawn = model.draw(40.0, 30.0, galsim_box(40, 30), np.eye(2) * 0.263)
+    assert abs(drawn.sum() - 1.0) < 0.02
+
+
+def galsim_box(x: int, y: int, half: int = 12):
+    from cellcoadd.geometry.box import Box
+
+    return Box(x_start=x - half, x_stop=x + half + 1, y_start=y - half, y_stop=y + half + 1)
+
+
+# -- 2. one gate for every path --------------------------------------------------------------
+
+
+def _exposure():
+    from exposure_factory import make_exposure
+
+    return make_exposure((150.0, 2.0), shape=(60, 60), psf=galsim.Gaussian(sigma=0.4))
+
+
+def test_plus_n_suffix_never_reads_another_file(tmp_path, lsst_file):
+    """Issue 28.2: ``e.fits+1`` read ``e.fits`` (CFITSIO's HDU suffix)."""
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "e.fits+1")
+    _refused(read_exposure, tmp_path / "e.fits+1", match="'+N' suffix")
+    shutil.copy(lsst_file, tmp_path / "v.fits")
+    shutil.copy(lsst_file, tmp_path / "v.fits+0")
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, tmp_path / "v.fits+0", psf, match="'+N' suffix")
+    with pytest.raises(CellCoaddFormatError, match="'\\+N' suffix"):
+        write_exposure(_exposure(), tmp_path / "new.fits+2")
+    assert not (tmp_path / "new.fits+2").exists()
+
+
+def test_plus_n_suffix_is_refused_by_the_build_command(tmp_path):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.build import build as build_command
+
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "e.fits+1")
+    result = CliRunner().invoke(
+        build_command,
+        [str(tmp_path / "e.fits+1"), "--tract", "0", "--patch", "0,0"]
+        + ["--out", str(tmp_path / "p.fits")],
+    )
+    message = result.output + str(result.exception)  # `cellcoadd` prints it in one line
+    assert result.exit_code != 0 and "+N" in message and "e.fits+1" in message, message
+    assert not (tmp_path / "p.fits").exists()
+
+
+def test_bang_prefix_reads_the_named_cell_coadds_file(tmp_path, monkeypatch):
+    """Issue 28.2: the Rubin cell_coadds reader read ``!d/y.fits`` as ``d/y.fits``."""
+    from coadd_factory import make_patch
+
+    from cellcoadd.io import api
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "d").mkdir()
+    (tmp_path / "!d").mkdir()
+    first, second = make_patch(band="r", seed=1), make_patch(band="i", seed=2)
+    api.write(first, "d/y.fits", layout="cell_coadds")
+    api.write(second, "!d/y.fits", layout="cell_coadds")
+    assert api.read("!d/y.fits").metadata.band == "i"
+    assert api.read("d/y.fits").metadata.band == "r"
+
+
+@pytest.mark.parametrize("what", ["manifest", "config", "psf", "exposure", "coadd"])
+def test_symlink_to_dev_zero_is_refused_unread(tmp_path, what):
+    """Issue 28.2: a symlink to /dev/zero was read whole (3 memory blow-ups)."""
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    name = {"manifest": "m.toml", "config": "c.toml", "psf": "p.psf"}.get(what, "x.fits")
+    link = tmp_path / name
+    link.symlink_to("/dev/zero")
+    reader = {
+        "manifest": read_manifest,
+        "config": read_build_config,
+        "psf": read_psf_file,
+        "exposure": read_exposure,
+        "coadd": _coadd_read,
+    }[what]
+    error = _refused_any(reader, link)
+    assert "character device" in str(error) and name in str(error)
+
+
+def _coadd_read(path):
+    from cellcoadd.io import api
+
+    return api.read(path)
+
+
+def _refused_any(reader, path):
+    with pytest.raises(Exception) as info:  # ConfigError wraps nothing: format errors only
+        _within_deadline(reader, path)
+    assert isinstance(info.value, CellCoaddFormatError), repr(info.value)
+    return info.value
+
+
+@pytest.mark.parametrize("what", ["manifest", "config", "psf", "exposure", "coadd"])
+def test_fifo_is_refused_without_blocking(tmp_path, what):
+    """Issue 28.2: a FIFO as a manifest hung the reader (2 hangs)."""
+    name = {"manifest": "m.json", "config": "c.json", "psf": "p.psf"}.get(what, "x.fits")
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    reader = {
+        "manifest": read_manifest,
+        "config": read_build_config,
+        "psf": read_psf_file,
+        "exposure": read_exposure,
+        "coadd": _coadd_read,
+    }[what]
+    error = _refused_any(reader, fifo)
+    assert "FIFO" in str(error)
+
+
+def test_writers_refuse_a_fifo_or_device_target(tmp_path):
+    fifo = tmp_path / "e.fits"
+    os.mkfifo(fifo)
+    with pytest.raises(CellCoaddFormatError, match="FIFO"):
+        _within_deadline(write_exposure, _exposure(), fifo, overwrite=True)
+    link = tmp_path / "z.fits"
+    link.symlink_to("/dev/null")
+    with pytest.raises(CellCoaddFormatError, match="character device"):
+        _within_deadline(write_exposure, _exposure(), link, overwrite=True)
+    assert os.path.exists("/dev/null") and not os.path.isfile("/dev/null")
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["e.fits[1]", "e.fits(t.fits)", "mem://e.fits", "https://x/e.fits", "e.fits+12", "e.fits "],
+)
+def test_cfitsio_syntax_is_refused_by_the_gate(tmp_path, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(CellCoaddFormatError):
+        gate_read(name, fits=True)
+    with pytest.raises(CellCoaddFormatError):
+        gate_write(name, fits=True)
+
+
+def test_symlinks_are_resolved_and_the_target_checked(tmp_path):
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "x.fits[1]")
+    (tmp_path / "plain.fits").symlink_to(tmp_path / "x.fits[1]")
+    # the link's own name is harmless, its target's is not: refused
+    _refused(read_exposure, tmp_path / "plain.fits", match="resolved to")
+    # a chain of links through a CFITSIO-like name ends at e.fits: that file is read
+    (tmp_path / "e.fits+1").symlink_to(tmp_path / "e.fits")
+    (tmp_path / "chain.fits").symlink_to(tmp_path / "e.fits+1")
+    assert gate_read(tmp_path / "chain.fits", fits=True) == os.path.realpath(tmp_path / "e.fits")
+    (tmp_path / "ok.fits").symlink_to(tmp_path / "e.fits")
+    assert read_exposure(tmp_path / "ok.fits").visit == _exposure().visit
+    assert gate_read(tmp_path / "ok.fits") == os.path.realpath(tmp_path / "e.fits")
+
+
+def test_gzip_psf_file_is_not_inflated(tmp_path, psfex_path):
+    packed = tmp_path / "bomb.psf"
+    packed.write_bytes(gzip.compress(b"\0" * (20 << 20)))
+    _refused(read_psf_file, packed, match="not a FITS file")
+
+
+def _unused() -> None:  # keep helpers referenced for linters
+    _ = (lsst_planes, DES_PSF, _need_des_files)
