@@ -315,3 +315,50 @@ def test_gzip_psf_file_is_not_inflated(tmp_path, psfex_path):
 
 def _unused() -> None:  # keep helpers referenced for linters
     _ = (lsst_planes, DES_PSF, _need_des_files)
+
+
+# -- 3. truncation of cell_coadds files -------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cell_coadds_bytes(tmp_path_factory) -> bytes:
+    from coadd_factory import make_patch
+
+    from cellcoadd.io import api
+
+    path = tmp_path_factory.mktemp("rubin") / "patch.fits"
+    api.write(make_patch(seed=3), path, layout="cell_coadds")
+    return path.read_bytes()
+
+
+def _hdu_starts(path: Path) -> list[int]:
+    with fitsio.FITS(str(path)) as fits:
+        return [int(hdu.get_offsets()["header_start"]) for hdu in fits]
+
+
+@pytest.mark.parametrize("hdu", [2, 3, 4, 5, 6, 7, 8])
+def test_cell_coadds_cut_at_an_hdu_boundary_is_refused(tmp_path, cell_coadds_bytes, hdu):
+    """Issue 28.3: cut at the start of HDU 5 or 6, the file read as another patch."""
+    from cellcoadd.io import api
+
+    whole = tmp_path / "whole.fits"
+    whole.write_bytes(cell_coadds_bytes)
+    starts = _hdu_starts(whole)
+    cut = tmp_path / "cut.fits"
+    cut.write_bytes(cell_coadds_bytes[: starts[hdu]])
+    error = _refused(api.read, cut, match="CCNHDU")
+    assert f"the file has {hdu}" in str(error) and "cut.fits" in str(error)
+
+
+def test_cell_coadds_random_truncation_is_always_refused(tmp_path, cell_coadds_bytes):
+    from cellcoadd.io import api
+
+    rng = np.random.default_rng(28)
+    whole = tmp_path / "whole.fits"
+    whole.write_bytes(cell_coadds_bytes)
+    starts = _hdu_starts(whole)
+    offsets = [*rng.integers(1, len(cell_coadds_bytes), 40), *starts[1:]]
+    for offset in offsets:
+        cut = tmp_path / f"cut{offset}.fits"
+        cut.write_bytes(cell_coadds_bytes[:offset])
+        _refused(api.read, cut)

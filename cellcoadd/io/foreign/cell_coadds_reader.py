@@ -75,6 +75,7 @@ class CellCoaddsFile(CoaddFile):
                 self._numbers = {
                     hdu.get_extname().upper(): n for n, hdu in enumerate(self._fits) if n > 1
                 }
+            self._check_hdu_count()
             header = self._header(1)
             self.layout_version = self._check_version(header)
             self._rows, self._columns = self._read_cell_ids(header)
@@ -133,6 +134,15 @@ class CellCoaddsFile(CoaddFile):
         hdu = self._hdu(number)
         with reading_errors(self.path, self._name(number)):
             return hdu.read() if hdu.get_nrows() else None
+
+    def _check_hdu_count(self) -> None:
+        """A file cut at an HDU boundary is valid FITS: the count our writer states in
+        CCNHDU must match (files without it, e.g. Rubin's own, are read as they are)."""
+        primary = self._header(0)
+        if "CCNHDU" in primary:
+            stated, count = self._int(primary, "CCNHDU", 0), len(self._fits)
+            if stated != count:
+                raise self._fail(0, f"CCNHDU says {stated} HDUs, the file has {count} (truncated?)")
 
     def _int(self, header: Any, key: str, number: int = 1) -> int:
         value = header.get(key)
