@@ -362,3 +362,125 @@ def test_cell_coadds_random_truncation_is_always_refused(tmp_path, cell_coadds_b
         cut = tmp_path / f"cut{offset}.fits"
         cut.write_bytes(cell_coadds_bytes[:offset])
         _refused(api.read, cut)
+
+
+# -- 4. and 10. PSF normalisation and conventions ---------------------------------------------
+
+
+def _tiny_build(psfs):
+    """Build the tiny patch from exposures made with ``psfs`` (one per exposure)."""
+    import dataclasses
+
+    from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
+
+    from cellcoadd import build_patch
+
+    patch = tiny_patch()
+    exposures = tiny_exposures(patch, n=len(psfs))
+    exposures = [dataclasses.replace(e, psf=p) for e, p in zip(exposures, psfs, strict=True)]
+    return build_patch(patch, exposures, TINY_BUILD, seed=1, progress=False)
+
+
+def test_a_profile_of_flux_half_is_refused_at_construction():
+    """Issue 28.4: a GalSim PSF of flux 0.5 moved the coadd PSF by 10% of its peak."""
+    from cellcoadd.errors import ExposureError
+
+    with pytest.raises(PsfError, match="flux 0.5"):
+        GalSimPsf(galsim.Gaussian(sigma=0.4, flux=0.5))
+    with pytest.raises(ExposureError, match="flux 1e-300"):
+        import dataclasses
+
+        dataclasses.replace(_exposure(), psf=galsim.Gaussian(sigma=0.4, flux=1e-300))
+
+
+def test_an_image_psf_summing_to_half_is_refused():
+    from cellcoadd.model.psf import ImagePsf
+
+    stamp = galsim.Gaussian(sigma=0.4).drawImage(nx=25, ny=25, scale=0.2).array
+    ImagePsf(stamp)  # sums to 1 within 1%
+    with pytest.raises(PsfError, match="flux 0.5"):
+        ImagePsf(0.5 * stamp / stamp.sum())
+
+
+def test_a_callable_of_the_wrong_flux_is_rejected_bad_psf():
+    """A callable's profiles are checked at each position: the input is rejected, named."""
+    good = GalSimPsf(galsim.Moffat(beta=3.5, fwhm=0.8))
+    half = GalSimPsf(lambda x, y: galsim.Moffat(beta=3.5, fwhm=0.8, flux=0.5))
+    built = _tiny_build([good, half])
+    for cell in built.values():
+        status = {r.visit: r.status for r in cell.inputs}
+        assert status.get(1) in (None, "bad_psf"), status
+        assert any(s == "bad_psf" for s in status.values()) or 1 not in status
+    assert any(r.status == "bad_psf" for c in built.values() for r in c.inputs)
+
+
+def test_a_bare_callable_must_state_the_pixel():
+    """Issue 28.10: a bare callable returning a PSFEx profile was taken as pre-pixel."""
+    import dataclasses
+
+    from cellcoadd.errors import ExposureError
+
+    with pytest.raises(ExposureError, match="include the pixel"):
+        dataclasses.replace(_exposure(), psf=lambda x, y: galsim.Gaussian(sigma=0.4))
+
+
+def test_a_profile_in_pixels_taken_as_arcsec_is_rejected_bad_psf():
+    """Issue 28.10: a profile returned in pixel units (5 px FWHM read as 5 arcsec)."""
+    good = GalSimPsf(galsim.Moffat(beta=3.5, fwhm=0.8))
+    in_pixels = GalSimPsf(lambda x, y: galsim.Moffat(beta=3.5, fwhm=0.8 / 0.2))
+    built = _tiny_build([good, in_pixels])
+    statuses = [r.status for c in built.values() for r in c.inputs if r.visit == 1]
+    assert statuses and all(s == "bad_psf" for s in statuses), statuses
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("PSF_SAMP", 0.0, "PSF_SAMP"),
+        ("POLSCAL1", 0.0, "POLSCAL"),
+        ("PSFAXIS1", 4, "PSFAXIS3/2/1"),
+        ("POLDEG1", 40, "POLDEG1"),
+        ("PSF_SAMP", "0.5", "not a number"),
+    ],
+)
+def test_broken_psfex_keywords_are_refused_on_reading(tmp_path, psfex_path, key, value, message):
+    """Issue 28.6: PSF_SAMP = 0 or POLSCAL1 = 0 failed the whole patch (ZeroDivisionError)."""
+    from astropy.io import fits
+
+    with fits.open(psfex_path) as hdus:
+        hdus[1].header[key] = value
+        hdus.writeto(tmp_path / "bad.psf")
+    error = _refused(read_psfex, tmp_path / "bad.psf", match=message)
+    assert "bad.psf" in str(error)
+
+
+@pytest.mark.parametrize("damage", ["random", "empty", "truncated", "nan", "gzip"])
+def test_broken_psfex_files_are_refused_on_reading(tmp_path, psfex_path, damage):
+    """Issue 28.6: broken PSF files were read as bytes, then every cell said bad_psf."""
+    from astropy.io import fits
+
+    data = psfex_path.read_bytes()
+    bad = tmp_path / "bad.psf"
+    if damage == "random":
+        bad.write_bytes(np.random.default_rng(6).bytes(len(data)))
+    elif damage == "empty":
+        bad.write_bytes(b"")
+    elif damage == "truncated":
+        bad.write_bytes(data[: len(data) - 1000])
+    elif damage == "gzip":
+        bad.write_bytes(gzip.compress(data))
+    else:
+        with fits.open(psfex_path) as hdus:
+            hdus[1].data["PSF_MASK"][0][0, 3, 3] = np.nan
+            hdus.writeto(bad)
+    _refused(read_psf_file, bad, match="bad.psf")
+
+
+def test_a_manifest_with_a_broken_psf_fails_before_the_build(tmp_path, lsst_file):
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    (tmp_path / "calexp.psf").write_bytes(b"SIMPLE  =" + os.urandom(3000))
+    (tmp_path / "m.toml").write_text(
+        '[[exposures]]\npath = "calexp.fits"\nlayout = "lsst"\npsf = "calexp.psf"\n'
+    )
+    with pytest.raises(CellCoaddFormatError, match="calexp.psf"):
+        sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)

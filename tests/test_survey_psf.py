@@ -275,12 +275,14 @@ def test_models_pickle_and_refuse_bad_input(psfex_file, tmp_path):
 
 
 def test_bare_forms_become_models():
-    """A GSObject or callable is a pre-pixel GalSimPsf, a galsim.Image an ImagePsf."""
+    """A GSObject is a pre-pixel GalSimPsf, a galsim.Image an ImagePsf; a bare callable
+    must say whether it includes the pixel."""
     from cellcoadd.model.psf import as_psf_model
 
     gaussian = galsim.Gaussian(sigma=0.4)
     assert isinstance(as_psf_model(gaussian), GalSimPsf)
-    assert isinstance(as_psf_model(lambda x, y: gaussian), GalSimPsf)
+    with pytest.raises(PsfError, match="include the pixel"):
+        as_psf_model(lambda x, y: gaussian)
     stamp = gaussian.drawImage(nx=15, ny=15, scale=0.2, dtype=float)
     assert isinstance(as_psf_model(stamp), ImagePsf)
     jac = np.eye(2) * 0.2

@@ -32,8 +32,13 @@ files are read, recognised by content and parsed whole by :mod:`cellcoadd.io`
 ``read_psf_file(path)``); ``PsfexPsf(path)`` says so.
 
 :func:`as_psf_model` turns the forms an :class:`~cellcoadd.model.exposure.Exposure`
-accepts into one of these: a bare GSObject or callable is a ``GalSimPsf`` (the callable
-form is pre-pixel), a ``galsim.Image`` an ``ImagePsf``.
+accepts into one of these: a bare GSObject (or ``VaryingPsf``, ``GridPsf``) is a
+``GalSimPsf``, a ``galsim.Image`` an ``ImagePsf``; a bare callable is refused (it must
+state whether it includes the pixel).
+
+Every model is checked where it is made or evaluated: profiles and stamps must have
+unit flux within :data:`PSF_FLUX_TOLERANCE` (:func:`check_psf_flux`) and finite values;
+PSFEx content is checked by :class:`PsfexData`.
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ import numpy as np
 from cellcoadd.errors import PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
-from cellcoadd.model.psf_profiles import MAX_STAMP_SIZE
+from cellcoadd.model.psf_profiles import MAX_STAMP_SIZE, GridPsf, VaryingPsf
 
 
 def _stamp(box: Box, wcs: galsim.BaseWCS) -> galsim.ImageD:
@@ -61,14 +66,38 @@ def _stamp(box: Box, wcs: galsim.BaseWCS) -> galsim.ImageD:
     return galsim.ImageD(bounds, wcs=wcs)
 
 
+#: Largest accepted ``|flux - 1|`` of a PSF profile or stamp: a PSF is the image of a
+#: unit-flux point source; a model of another flux would change the coadd PSF's shape
+#: (its inputs are weighted as if it had unit flux). PSFEx stamps sum to 1 within ~0.5%.
+PSF_FLUX_TOLERANCE = 0.01
+
+
+def check_psf_flux(flux: float, where: str) -> None:
+    """Refuse a PSF whose total flux is not 1 within :data:`PSF_FLUX_TOLERANCE`.
+
+    Raises
+    ------
+    PsfError
+        Naming ``where`` and the flux.
+    """
+    if not (math.isfinite(flux) and abs(flux - 1.0) <= PSF_FLUX_TOLERANCE):
+        raise PsfError(
+            f"{where}: the PSF has flux {flux:.6g}, not 1 within {PSF_FLUX_TOLERANCE} (a PSF "
+            "is the image of a unit-flux point source: normalise it, e.g. "
+            "profile.withFlux(1.0) or stamp / stamp.sum())"
+        )
+
+
 def _user_profile(func: Callable[[float, float], Any], x: float, y: float) -> galsim.GSObject:
-    """``func(x, y)``, which must be a GSObject; any failure of user code is a PsfError."""
+    """``func(x, y)``, which must be a unit-flux GSObject; any failure of user code is a
+    PsfError."""
     try:
         profile = func(x, y)
     except Exception as err:  # user code may fail in any way: the input is rejected
         raise PsfError(f"the PSF callable failed at ({x:.2f}, {y:.2f}): {err!r}") from err
     if not isinstance(profile, galsim.GSObject):
         raise PsfError(f"the PSF callable returned {type(profile).__name__}, not a GSObject")
+    check_psf_flux(profile.flux, f"the PSF callable at ({x:.2f}, {y:.2f})")
     return profile
 
 
@@ -143,6 +172,8 @@ class GalSimPsf(PsfModel):
     def __init__(self, profile: galsim.GSObject | Callable[[float, float], galsim.GSObject]):
         if not (isinstance(profile, galsim.GSObject) or callable(profile)):
             raise PsfError(f"GalSimPsf needs a GSObject or a callable, got {profile!r}")
+        if isinstance(profile, galsim.GSObject):
+            check_psf_flux(profile.flux, "GalSimPsf")
         self.profile = profile
 
     def at(self, x: float, y: float) -> galsim.GSObject:
@@ -207,6 +238,7 @@ class ImagePsf(PsfModel):
             raise PsfError(f"an image PSF must be an odd square stamp, got shape {array.shape}")
         if not (np.all(np.isfinite(array)) and array.sum() > 0):
             raise PsfError("an image PSF must be finite with a positive sum")
+        check_psf_flux(float(array.sum()), "ImagePsf (the sum of the stamp)")
         self.image = image if isinstance(image, galsim.Image) else galsim.Image(array)
 
     def draw(
@@ -458,17 +490,28 @@ def as_psf_model(psf: object) -> PsfModel:
     """The :class:`PsfModel` for the PSF forms an exposure accepts.
 
     A PsfModel is returned as is; a ``galsim.Image`` becomes an :class:`ImagePsf`; a
-    GSObject or any other callable a :class:`GalSimPsf` (pre-pixel).
+    GSObject, a :class:`~cellcoadd.model.psf_profiles.VaryingPsf` or a
+    :class:`~cellcoadd.model.psf_profiles.GridPsf` (pre-pixel by construction) a
+    :class:`GalSimPsf`.
 
     Raises
     ------
     PsfError
-        For anything else.
+        For anything else, including a bare callable: whether its profiles include the
+        pixel must be stated (``GalSimPsf(func)`` for profiles without it,
+        ``CallablePsf(func, includes_pixel=...)``); taking a PSFEx or Piff profile as
+        pre-pixel would apply the pixel twice.
     """
     if isinstance(psf, PsfModel):
         return psf
     if isinstance(psf, galsim.Image):
         return ImagePsf(psf)
-    if isinstance(psf, galsim.GSObject) or callable(psf):
+    if isinstance(psf, (galsim.GSObject, VaryingPsf, GridPsf)):
         return GalSimPsf(psf)
+    if callable(psf):
+        raise PsfError(
+            f"a callable PSF ({psf!r}) must state whether its profiles include the pixel: "
+            "GalSimPsf(func) for profiles without it (e.g. atmosphere and optics), "
+            "CallablePsf(func, includes_pixel=True) for PSFEx- or Piff-like profiles"
+        )
     raise PsfError(f"psf must be a PsfModel, a GSObject, a callable or a galsim.Image, got {psf!r}")
