@@ -484,3 +484,78 @@ def test_a_manifest_with_a_broken_psf_fails_before_the_build(tmp_path, lsst_file
     )
     with pytest.raises(CellCoaddFormatError, match="calexp.psf"):
         sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)
+
+
+# -- 5. memory on survey readers ----------------------------------------------------------------
+
+
+def _forge_cards(data: bytes, values: dict[str, int]) -> bytes:
+    """``data`` with every header card ``KEY = ...`` of ``values`` rewritten in place."""
+    out = bytearray(data)
+    for key, value in values.items():
+        start = 0
+        prefix = f"{key:<8}= ".encode()
+        while (found := out.find(prefix, start)) >= 0:
+            if found % 80 == 0:
+                out[found : found + 80] = f"{key:<8}= {value:>20}".ljust(80).encode()
+            start = found + 80
+    return bytes(out)
+
+
+def _small_compressed_lsst(tmp_path: Path) -> Path:
+    """An LSST-shaped tile-compressed file whose planes are one 64 x 64 tile each."""
+    from test_survey_readers import LSST_PLANES, _sip_cards
+
+    path = tmp_path / "small.fits.fz"
+    wcs = _sip_cards()
+    mask_cards = [*wcs, *({"name": f"MP_{k}", "value": v} for k, v in LSST_PLANES.items())]
+    primary = [
+        {"name": "HIERARCH LSST BUTLER DATAID VISIT", "value": 2025061100123},
+        {"name": "HIERARCH LSST BUTLER DATAID DETECTOR", "value": 94},
+        {"name": "HIERARCH LSST BUTLER DATAID BAND", "value": "r"},
+    ]
+    with fitsio.FITS(path, "rw", clobber=True) as fits:
+        fits.write(None, header=primary)
+        for name, dtype, cards in (
+            ("IMAGE", np.float32, wcs),
+            ("MASK", np.int32, mask_cards),
+            ("VARIANCE", np.float32, wcs),
+        ):
+            plane = np.ones((64, 64), dtype=dtype)
+            fits.write(
+                plane,
+                extname=name,
+                header=cards,
+                compress="GZIP_2",
+                tile_dims=(64, 64),
+                qlevel=None,
+            )
+    return path
+
+
+@pytest.mark.parametrize(
+    ("size", "message"), [(16000, "more than the"), (4000, "stores")], ids=["huge", "ratio"]
+)
+def test_declared_planes_are_bounded_before_cfitsio_allocates(tmp_path, size, message):
+    """Issue 28.5: a 17 MB .fz declaring 16000 x 16000 planes reached 5.7 GB."""
+    import resource
+
+    small = _small_compressed_lsst(tmp_path)
+    forged = tmp_path / "forged.fits.fz"
+    cards = {"ZNAXIS1": size, "ZNAXIS2": size, "ZTILE1": size, "ZTILE2": size}  # one tile
+    forged.write_bytes(_forge_cards(small.read_bytes(), cards))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    read_lsst_exposure(small, psf, zero_point=30.0)  # the file as written reads
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    error = _refused(read_lsst_exposure, forged, psf, zero_point=30.0, match=message)
+    assert "forged.fits.fz" in str(error) and "HDU" in str(error)
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mb < 200, grown_mb
+
+
+def test_gzip_stream_named_fz_is_refused_before_cfitsio(tmp_path, lsst_file):
+    """Issue 28.5: a 1.5 MB gzip named .fits.fz took 1.74 GB and 85 s (CFITSIO inflated it)."""
+    packed = tmp_path / "visit.fits.fz"
+    packed.write_bytes(gzip.compress(b"\0" * (64 << 20)))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, packed, psf, match="not a FITS file")
