@@ -559,3 +559,42 @@ def test_gzip_stream_named_fz_is_refused_before_cfitsio(tmp_path, lsst_file):
     packed.write_bytes(gzip.compress(b"\0" * (64 << 20)))
     psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
     _refused(read_lsst_exposure, packed, psf, match="not a FITS file")
+
+
+# -- 7. strict header values --------------------------------------------------------------------
+
+
+def _with_primary_key(source: Path, target: Path, key: str, value) -> Path:
+    shutil.copy(source, target)
+    with fitsio.FITS(str(target), "rw") as fits:
+        fits[0].write_key(key, value)
+    return target
+
+
+def test_a_zero_point_keyword_that_is_not_a_number_is_refused(tmp_path, lsst_file):
+    """Issue 28.7: MAGZERO = '31.2' (a string) was ignored and zero_point= used silently."""
+    from cellcoadd.io import LSST_LAYOUT, ZeroPointKey, read_mef_exposure
+
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    layout = LSST_LAYOUT.model_copy(update={"zero_point_keys": (ZeroPointKey(keyword="MAGZERO"),)})
+    path = _with_primary_key(lsst_file, tmp_path / "magzero.fits", "MAGZERO", "31.2")
+    error = _refused(read_mef_exposure, path, layout, psf, zero_point=30.0, match="MAGZERO")
+    assert "'31.2'" in str(error) and "HDU 0" in str(error)
+    path = _with_primary_key(lsst_file, tmp_path / "fluxmag0.fits", "FLUXMAG0", -5.0)
+    _refused(read_lsst_exposure, path, psf, zero_point=30.0, match="FLUXMAG0")
+    # a number reads; no keyword at all still takes zero_point=
+    path = _with_primary_key(lsst_file, tmp_path / "ok.fits", "MAGZERO", 31.2)
+    assert read_mef_exposure(path, layout, psf, zero_point=30.0).zero_point == 31.2
+
+
+def test_an_undefined_high_mask_bit_in_an_int64_mask_is_refused(tmp_path):
+    """Issue 28.7: bit 40 of an int64 mask was dropped by the cast to int32."""
+    image, mask, variance = lsst_planes()
+    wide = mask.astype(np.int64)
+    wide[7, 9] |= np.int64(1) << 40
+    path = write_lsst(tmp_path / "wide.fits", (image, wide, variance))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    error = _refused(read_lsst_exposure, path, psf, match="have no name")
+    assert "0x10000000000" in str(error) and "MASK" in str(error)
+    narrow = write_lsst(tmp_path / "narrow.fits", (image, mask.astype(np.int64), variance))
+    np.testing.assert_array_equal(read_lsst_exposure(narrow, psf).mask, mask)

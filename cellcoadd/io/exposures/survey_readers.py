@@ -178,13 +178,16 @@ class MefExposureFile(ExposureSource):
                 background = headers.pixels(meta.background, cut, "background")
             if not np.issubdtype(mask.dtype, np.integer):
                 raise headers.fail(meta.mask, f"the mask must be integer, got {mask.dtype}")
-            mask = mask.astype(np.int32)
             names = meta.header.mask_bits
-            unknown = names.unknown_bits(mask)
+            # before narrowing to int32: bits above 31 of a wider mask would vanish
+            unknown = names.unknown_bits(mask.astype(np.int64, copy=False))
             if unknown:
                 raise headers.fail(
-                    meta.mask, f"mask bits {unknown:#x} have no name (named: {sorted(names.bits)})"
+                    meta.mask,
+                    f"mask bits {unknown & 0xFFFFFFFFFFFFFFFF:#x} have no name "
+                    f"(named: {sorted(names.bits)})",
                 )
+            mask = mask.astype(np.int32)
         if self.background is not None:
             with open_mef(self.background) as bkg:
                 index = self._background_index(bkg, meta.header.shape)
@@ -320,11 +323,19 @@ class MefExposureFile(ExposureSource):
 
     def _zero_point(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
         for key in self.layout.zero_point_keys:
-            for _, header in searched:
+            for index, header in searched:
                 if key.keyword in header:
-                    value = zero_point_from(key.kind, header[key.keyword])
+                    raw = header[key.keyword]
+                    value = zero_point_from(key.kind, raw)
                     if value is not None:
                         return value
+                    if key.kind != "bunit":  # BUNIT may name another unit: no zero point
+                        # present but unusable: never fall back to zero_point= silently
+                        raise headers.fail(
+                            index,
+                            f"{key.keyword} = {raw!r} is not a usable zero point (a finite "
+                            f"number{', positive' if key.kind == 'fluxmag0' else ''} is needed)",
+                        )
         if self.zero_point is not None:
             return float(self.zero_point)
         keys = [key.keyword for key in self.layout.zero_point_keys]
