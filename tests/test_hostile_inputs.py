@@ -598,3 +598,38 @@ def test_an_undefined_high_mask_bit_in_an_int64_mask_is_refused(tmp_path):
     assert "0x10000000000" in str(error) and "MASK" in str(error)
     narrow = write_lsst(tmp_path / "narrow.fits", (image, mask.astype(np.int64), variance))
     np.testing.assert_array_equal(read_lsst_exposure(narrow, psf).mask, mask)
+
+
+# -- 8. manifests and configurations ----------------------------------------------------------
+
+
+def _deep(kind: str, depth: int) -> str:
+    if kind == "json":
+        return '{"exposures": ' + "[" * depth + "]" * depth + "}"
+    return "exposures = " + "[" * depth + "]" * depth + "\n"
+
+
+@pytest.mark.parametrize("kind", ["json", "toml"])
+@pytest.mark.parametrize("reader", [read_manifest, read_build_config], ids=["manifest", "config"])
+@pytest.mark.parametrize("depth", [100_000, 40])
+def test_deep_nesting_is_refused_naming_the_file(tmp_path, kind, reader, depth):
+    """Issue 28.8: 100,000-deep nesting raised a RecursionError without the file's name."""
+    path = tmp_path / f"deep.{kind}"
+    path.write_text(_deep(kind, depth))
+    error = _refused(reader, path, match="nested")
+    assert f"deep.{kind}" in str(error)
+
+
+def test_duplicate_keys_are_refused(tmp_path):
+    """Issue 28.8: duplicate keys in JSON or CSV manifests: the last silently won."""
+    entry = '{"path": "a.fits", "visit": 1, "visit": 2}'
+    (tmp_path / "m.json").write_text('{"exposures": [' + entry + "]}")
+    _refused(read_manifest, tmp_path / "m.json", match="key visit twice")
+    (tmp_path / "t.json").write_text('{"exposures": [], "exposures": [{"path": "a.fits"}]}')
+    _refused(read_manifest, tmp_path / "t.json", match="key exposures twice")
+    (tmp_path / "c.json").write_text('{"n_noise": 1, "n_noise": 3}')
+    _refused(read_build_config, tmp_path / "c.json", match="key n_noise twice")
+    (tmp_path / "m.csv").write_text("path,visit,visit\na.fits,1,2\n")
+    _refused(read_manifest, tmp_path / "m.csv", match="['visit'] twice")
+    (tmp_path / "m.toml").write_text('[[exposures]]\npath = "a.fits"\npath = "b.fits"\n')
+    _refused(read_manifest, tmp_path / "m.toml", match="m.toml")

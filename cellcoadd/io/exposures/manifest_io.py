@@ -38,22 +38,63 @@ else:  # pragma: no cover - Python 3.10
 
 #: Largest manifest or configuration file read (bytes).
 MAX_MANIFEST_BYTES = 64 * 1024 * 1024
+#: Deepest nesting of arrays and tables accepted in a manifest or configuration (a
+#: manifest needs 4: document, exposures, entry, layout).
+MAX_NESTING = 16
 
 _INT_FIELDS = ("visit", "detector")
 _FLOAT_FIELDS = ("zero_point",)
 
 
+class _DuplicateKey(Exception):
+    """A JSON object names a key twice."""
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` of json: a key named twice is refused (the last would win)."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
+def _check_depth(path: Path, what: str, data: Any) -> None:
+    """Refuse documents nested deeper than :data:`MAX_NESTING` (iteratively: no recursion)."""
+    stack = [(data, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise CellCoaddFormatError(path, f"the {what} is nested deeper than {MAX_NESTING}")
+        if isinstance(item, dict):
+            stack.extend((value, depth + 1) for value in item.values())
+        elif isinstance(item, list):
+            stack.extend((value, depth + 1) for value in item)
+
+
 def _load_mapping(path: Path, what: str) -> Any:
-    """The TOML or JSON document in ``path``."""
+    """The TOML or JSON document in ``path``: no key twice, nesting at most
+    :data:`MAX_NESTING` deep."""
     text = read_bytes(path, what=what, max_bytes=MAX_MANIFEST_BYTES)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".json"):
+        raise CellCoaddFormatError(path, f"a {what} must end in .toml or .json")
     try:
-        if path.suffix.lower() == ".toml":
-            return tomllib.loads(text.decode("utf-8"))
-        if path.suffix.lower() == ".json":
-            return json.loads(text)
+        if suffix == ".toml":  # TOML itself refuses a key defined twice
+            data = tomllib.loads(text.decode("utf-8"))
+        else:
+            data = json.loads(text, object_pairs_hook=_unique_pairs)
+    except _DuplicateKey as err:
+        raise CellCoaddFormatError(path, f"the {what} names the key {err} twice") from None
+    except RecursionError:
+        raise CellCoaddFormatError(
+            path, f"the {what} is nested too deeply to parse (at most {MAX_NESTING})"
+        ) from None
     except (ValueError, UnicodeDecodeError) as err:  # TOMLDecodeError, JSONDecodeError
         raise CellCoaddFormatError(path, f"not a valid {what}: {err}") from err
-    raise CellCoaddFormatError(path, f"a {what} must end in .toml or .json")
+    _check_depth(path, what, data)
+    return data
 
 
 def read_manifest(path: str | os.PathLike[str]) -> Manifest:
@@ -80,7 +121,12 @@ def read_manifest(path: str | os.PathLike[str]) -> Manifest:
 def _csv_entries(path: Path) -> list[dict[str, Any]]:
     data = read_bytes(path, what="manifest", max_bytes=MAX_MANIFEST_BYTES)
     try:
-        rows = list(csv.DictReader(io.StringIO(data.decode("utf-8"), newline="")))
+        reader = csv.DictReader(io.StringIO(data.decode("utf-8"), newline=""))
+        names = [name.strip() for name in reader.fieldnames or []]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:
+            raise CellCoaddFormatError(path, f"the header line names {twice} twice")
+        rows = list(reader)
     except (UnicodeDecodeError, csv.Error) as err:
         raise CellCoaddFormatError(path, f"cannot read the manifest: {err}") from err
     entries = []
