@@ -633,3 +633,33 @@ def test_duplicate_keys_are_refused(tmp_path):
     _refused(read_manifest, tmp_path / "m.csv", match="['visit'] twice")
     (tmp_path / "m.toml").write_text('[[exposures]]\npath = "a.fits"\npath = "b.fits"\n')
     _refused(read_manifest, tmp_path / "m.toml", match="m.toml")
+
+
+# -- 9. --out never one of the inputs -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("how", ["same", "relative", "symlink", "hardlink", "manifest"])
+def test_build_out_equal_to_an_input_is_refused(tmp_path, monkeypatch, how):
+    """Issue 28.9: --out equal to an input exposure replaced it with the coadd, exit 0."""
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.build import build as build_command
+
+    monkeypatch.chdir(tmp_path)
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    before = (tmp_path / "e.fits").read_bytes()
+    out = {"same": str(tmp_path / "e.fits"), "relative": "./e.fits", "manifest": "m.toml"}
+    if how == "symlink":
+        (tmp_path / "link.fits").symlink_to(tmp_path / "e.fits")
+    if how == "hardlink":
+        os.link(tmp_path / "e.fits", tmp_path / "hard.fits")
+    target = out.get(how, {"symlink": "link.fits", "hardlink": "hard.fits"}.get(how))
+    args = ["e.fits"]
+    if how == "manifest":
+        (tmp_path / "m.toml").write_text('[[exposures]]\npath = "e.fits"\n')
+        args, target = ["--manifest", "m.toml"], "e.fits"
+    result = CliRunner().invoke(
+        build_command, [*args, "--tract", "0", "--patch", "0,0", "--out", target, "--overwrite"]
+    )
+    assert result.exit_code != 0 and "is the input file" in result.output, result.output
+    assert (tmp_path / "e.fits").read_bytes() == before

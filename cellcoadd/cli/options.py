@@ -63,6 +63,26 @@ def check_output_path(out: str, overwrite: bool, *, directory_may_be_created: bo
         raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
 
 
+def check_output_not_an_input(out: str, inputs: list[str]) -> None:
+    """Refuse an output that is one of the command's input files (the same file, by
+    device and inode, or the same resolved path): with ``--overwrite`` it would be lost.
+
+    Raises
+    ------
+    click.ClickException
+        Naming the input.
+    """
+    target = os.path.realpath(out)
+    for name in inputs:
+        same = os.path.realpath(name) == target
+        if not same and os.path.exists(out) and os.path.exists(name):
+            same = os.path.samefile(out, name)
+        if same:
+            raise click.ClickException(
+                f"{out}: --out is the input file {name}; write the coadd elsewhere"
+            )
+
+
 skymap_option = click.option(
     "--skymap",
     "skymap_path",
