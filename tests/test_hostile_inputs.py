@@ -663,3 +663,22 @@ def test_build_out_equal_to_an_input_is_refused(tmp_path, monkeypatch, how):
     )
     assert result.exit_code != 0 and "is the input file" in result.output, result.output
     assert (tmp_path / "e.fits").read_bytes() == before
+
+
+# -- 11. band mismatch --------------------------------------------------------------------------
+
+
+def test_a_band_mismatch_is_an_input_error_naming_the_exposures():
+    """Issue 28.11: a band mismatch was refused as a plain ValueError."""
+    import dataclasses
+
+    from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
+
+    from cellcoadd import build_patch
+    from cellcoadd.errors import InputError
+
+    patch = tiny_patch()
+    first, second = tiny_exposures(patch, n=2)
+    with pytest.raises(InputError, match="several bands") as info:
+        build_patch(patch, [first, dataclasses.replace(second, band="i")], TINY_BUILD)
+    assert f"visit={second.visit}" in str(info.value) and "'i'" in str(info.value)

@@ -40,7 +40,7 @@ from cellcoadd.builder.cell import CellBlock, check_mask_bits, check_unique_inpu
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
 from cellcoadd.builder.select import exposures_near_cells
-from cellcoadd.errors import CellBuildError
+from cellcoadd.errors import CellBuildError, InputError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -318,7 +318,9 @@ def build_patch(
     CellBuildError
         If any cell fails; names the cell and includes the original traceback.
     ValueError
-        On duplicate ``(visit, detector)`` inputs or mixed bands.
+        On duplicate ``(visit, detector)`` inputs.
+    InputError
+        On mixed bands (naming an exposure of each band); also a ValueError.
 
     Notes
     -----
@@ -343,7 +345,11 @@ def build_patch(
     if not bands:
         raise ValueError("build_patch needs at least one exposure")
     if len(bands) > 1:
-        raise ValueError(f"exposures of several bands given ({bands}); build one band at a time")
+        first = {b: next(h for h in headers if h.band == b) for b in bands}
+        named = ", ".join(
+            f"{b!r} (visit={h.visit}, detector={h.detector})" for b, h in first.items()
+        )
+        raise InputError(f"exposures of several bands given: {named}; build one band at a time")
     try:
         check_band_name(bands[0])
     except ValueError as err:
