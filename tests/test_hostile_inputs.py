@@ -682,3 +682,14 @@ def test_a_band_mismatch_is_an_input_error_naming_the_exposures():
     with pytest.raises(InputError, match="several bands") as info:
         build_patch(patch, [first, dataclasses.replace(second, band="i")], TINY_BUILD)
     assert f"visit={second.visit}" in str(info.value) and "'i'" in str(info.value)
+
+
+@pytest.mark.parametrize("order", [100_000, 5000, -3, "2"])
+def test_a_huge_sip_order_is_refused_before_astropy_allocates(tmp_path, lsst_file, order):
+    """Found by the header fuzz: A_ORDER = 100000 made astropy allocate 75 GB."""
+    path = tmp_path / "sip.fits"
+    shutil.copy(lsst_file, path)
+    with fitsio.FITS(str(path), "rw") as fits:
+        fits[1].write_key("A_ORDER", order)
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, path, psf, match="A_ORDER")

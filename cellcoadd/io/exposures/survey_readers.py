@@ -80,7 +80,21 @@ def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Head
     return out
 
 
+#: Highest SIP polynomial order accepted: astropy allocates (order + 1)^2 coefficients
+#: per polynomial (A_ORDER = 100000 asks for 75 GB); survey WCSs use at most ~9.
+MAX_SIP_ORDER = 20
+
+
 def _wcs(path: str, header: fits.Header, what: str) -> WCS:
+    for key in ("A_ORDER", "B_ORDER", "AP_ORDER", "BP_ORDER"):
+        if key in header:
+            order = header[key]
+            if isinstance(order, bool) or not isinstance(order, int):
+                raise CellCoaddFormatError(path, f"{what}: {key} = {order!r} is not an integer")
+            if not 0 <= order <= MAX_SIP_ORDER:
+                raise CellCoaddFormatError(
+                    path, f"{what}: {key} = {order} is outside 0..{MAX_SIP_ORDER}"
+                )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
