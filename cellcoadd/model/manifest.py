@@ -13,6 +13,7 @@ A manifest is a TOML, JSON or CSV file with one entry per exposure (see
     path = "calexp_2024031500123_R22_S11.fits"
     layout = "lsst"
     psf = "calexp_2024031500123_R22_S11.piff"
+    trust_psf = true  # a Piff file holds pickled objects: loaded only when trusted
     zero_point = 31.4
 
 Relative paths are relative to the manifest's directory.
