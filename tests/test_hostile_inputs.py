@@ -693,3 +693,15 @@ def test_a_huge_sip_order_is_refused_before_astropy_allocates(tmp_path, lsst_fil
         fits[1].write_key("A_ORDER", order)
     psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
     _refused(read_lsst_exposure, path, psf, match="A_ORDER")
+
+
+def test_a_trusted_manifest_piff_psf_reads(tmp_path, lsst_file):
+    pytest.importorskip("piff")
+    from survey_psf_factory import build_piff_model
+
+    build_piff_model(tmp_path / "calexp.piff", nx=LSST_NX, ny=LSST_NY, nstars_side=(3, 3))
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    entry = '[[exposures]]\npath = "calexp.fits"\nlayout = "lsst"\npsf = "calexp.piff"\n'
+    (tmp_path / "m.toml").write_text(entry + "trust_psf = true\n")
+    (source,) = sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)
+    assert isinstance(source.psf, PiffPsf)

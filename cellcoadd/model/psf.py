@@ -480,6 +480,7 @@ class PiffPsf(_FileModel):
             raise PsfError(
                 f"{self.source}: Piff model failed at ({x:.2f}, {y:.2f}): {err}"
             ) from err
+        check_psf_flux(float(profile.flux), f"{self.source} at ({x:.2f}, {y:.2f})")
         # Piff's profile is on the sky of its own WCS: drawn through that WCS's Jacobian
         image = _stamp(box, local)
         cx, cy = center if center is not None else (x, y)
