@@ -20,14 +20,7 @@ import galsim
 import numpy as np
 import pytest
 from survey_psf_factory import write_psfex_file
-from test_survey_readers import (
-    DES_PSF,
-    LSST_NX,
-    LSST_NY,
-    _need_des_files,
-    lsst_planes,
-    write_lsst,
-)
+from test_survey_readers import LSST_NX, LSST_NY, lsst_planes, write_lsst
 
 from cellcoadd.errors import CellCoaddFormatError, PsfError
 from cellcoadd.io import (
@@ -311,10 +304,6 @@ def test_gzip_psf_file_is_not_inflated(tmp_path, psfex_path):
     packed = tmp_path / "bomb.psf"
     packed.write_bytes(gzip.compress(b"\0" * (20 << 20)))
     _refused(read_psf_file, packed, match="not a FITS file")
-
-
-def _unused() -> None:  # keep helpers referenced for linters
-    _ = (lsst_planes, DES_PSF, _need_des_files)
 
 
 # -- 3. truncation of cell_coadds files -------------------------------------------------------
