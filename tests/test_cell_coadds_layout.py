@@ -43,6 +43,7 @@ def _lsst_part(source, target) -> None:
     """Copy the LSST HDUs only (what the LSST writer makes), with astropy like LSST does."""
     with fits.open(source) as hdus:
         kept = fits.HDUList([hdu.copy() for hdu in hdus[: len(LSST_HDUS)]])
+        kept[0].header.remove("CCNHDU")  # our HDU count (an LSST writer does not state it)
         kept.writeto(target, checksum=True)
 
 

@@ -171,7 +171,13 @@ def _the_one_band(headers: Sequence[Exposure | ExposureHeader]) -> str:
     if not bands:
         raise InputError("build_patch needs at least one exposure")
     if len(bands) > 1:
-        raise InputError(f"exposures of several bands given ({bands}); build one band at a time")
+        first = {b: next(h for h in headers if h.band == b) for b in bands}
+        named = ", ".join(
+            f"{b!r} (visit={h.visit}, detector={h.detector})" for b, h in first.items()
+        )
+        raise InputError(
+            f"exposures of several bands given: {named}; build one band at a time", value=bands
+        )
     try:
         check_band_name(bands[0])
     except ValueError as err:

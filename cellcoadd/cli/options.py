@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import click
 
@@ -23,10 +22,14 @@ def load_skymap(path: str | None) -> SkyMap:
     """A sky map from a ``skymap.json`` file, or the default full-sky rings when None."""
     if path is None:
         return SkyMap.rings()
+    from cellcoadd.errors import CellCoaddFormatError
+    from cellcoadd.io._files.path_gate import read_bytes
+
     try:
-        return SkyMap.from_json(Path(path).read_text())
-    except OSError as err:
-        raise click.ClickException(f"cannot read sky map {path}: {err.strerror}") from None
+        text = read_bytes(path, what="sky map", max_bytes=16 * 1024 * 1024).decode("utf-8")
+        return SkyMap.from_json(text)
+    except (OSError, CellCoaddFormatError) as err:
+        raise click.ClickException(f"cannot read sky map {path}: {err}") from None
     except ValueError as err:
         raise click.ClickException(f"{path} is not a valid sky map file: {err}") from None
 
@@ -58,6 +61,26 @@ def check_output_path(out: str, overwrite: bool, *, directory_may_be_created: bo
         raise click.ClickException(str(err)) from None
     if os.path.exists(out) and not overwrite:
         raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+
+
+def check_output_not_an_input(out: str, inputs: list[str]) -> None:
+    """Refuse an output that is one of the command's input files (the same file, by
+    device and inode, or the same resolved path): with ``--overwrite`` it would be lost.
+
+    Raises
+    ------
+    click.ClickException
+        Naming the input.
+    """
+    target = os.path.realpath(out)
+    for name in inputs:
+        same = os.path.realpath(name) == target
+        if not same and os.path.exists(out) and os.path.exists(name):
+            same = os.path.samefile(out, name)
+        if same:
+            raise click.ClickException(
+                f"{out}: --out is the input file {name}; write the coadd elsewhere"
+            )
 
 
 skymap_option = click.option(

@@ -17,6 +17,7 @@ from cellcoadd.io.exposures.mef_layout import (
     MefLayout,
     ZeroPointKey,
 )
+from cellcoadd.io.exposures.psf_files import read_piff, read_psf_file, read_psfex
 from cellcoadd.io.exposures.survey_readers import (
     MefExposureFile,
     read_des_exposure,
@@ -46,6 +47,9 @@ __all__ = [
     "read_lsst_exposure",
     "read_manifest",
     "read_mef_exposure",
+    "read_piff",
+    "read_psf_file",
+    "read_psfex",
     "sources_from_manifest",
     "write",
     "write_exposure",

@@ -34,6 +34,7 @@ from cellcoadd.errors import (
 )
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._files.read_checks import reading_errors
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import stabilise_fits_checksums
@@ -231,6 +232,7 @@ def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
     """
     name = os.fspath(path)
     layout = file_format(name)
+    gate_read(name, what="coadd file", fits=layout == "fits")
     with _fresh_cfitsio_messages(layout):
         if layout == "fits" and is_cell_coadds_file(name):  # the LSST layout, by its headers
             return CellCoaddsFile(name, verify=verify)

@@ -32,6 +32,7 @@ from astropy.wcs import WCS
 from cellcoadd.errors import CellCoaddIncompatibleValuesError, CellCoaddRangeError
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._fits.checksums import DATACRC_PLACEHOLDER
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io._fits.wcs_header import wcs_cards
 from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import cell_record_json
@@ -57,6 +58,9 @@ POLYGON_VERTICES = 8
 UNKNOWN_NAME = "cellcoadd"
 #: Our extension HDUs (the LSST reader ignores them).
 EXT_METADATA, EXT_CELLS, EXT_INPUTS = "CELLCOADD", "CELLCOADD_CELLS", "CELLCOADD_INPUTS"
+#: Number of HDUs cellcoadd writes in this layout, stated in the primary header as CCNHDU.
+N_HDUS = 9
+CCNHDU_CARD = {"name": "CCNHDU", "value": N_HDUS, "comment": "HDUs in this file (cellcoadd)"}
 #: Keywords of the cell table header that identify the layout.
 IDENTIFYING_KEYWORDS = ("VERSION", "GRCELL1", "GRSHAPE1", "GRMIN1", "OCELL1", "PSFSIZE1")
 
@@ -416,8 +420,9 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
     stored = _stored_cells(patch)
     payload, version = format_version.metadata_payload(meta)
     cards, _ = wcs_cards(_tract_wcs(patch))
-    with fitsio.FITS(path, "rw", clobber=True) as fits:
-        fits.write(None, header=[*cards, DATACRC_PLACEHOLDER])
+    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
+        # CCNHDU: a file cut at an HDU boundary is still valid FITS; the count tells
+        fits.write(None, header=[*cards, CCNHDU_CARD, DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         dtype = _table_dtype(meta)
         units = ["", lsst_units(meta.units), "", f"{lsst_units(meta.units)}**2"]

@@ -23,6 +23,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits.checksums import verify_hdu
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io.coadd.cell_records import expected_shapes, parse_cell_record
 from cellcoadd.io.coadd.coadd_file import CoaddFile
 from cellcoadd.io.coadd.fits_format import check_fits_path
@@ -70,10 +71,11 @@ class CellCoaddsFile(CoaddFile):
         self._checked: set[int] = set()
         try:
             with reading_errors(path, "cannot open the FITS file"):
-                self._fits = fitsio.FITS(path)
+                self._fits = fitsio.FITS(cfitsio_path(path))
                 self._numbers = {
                     hdu.get_extname().upper(): n for n, hdu in enumerate(self._fits) if n > 1
                 }
+            self._check_hdu_count()
             header = self._header(1)
             self.layout_version = self._check_version(header)
             self._rows, self._columns = self._read_cell_ids(header)
@@ -132,6 +134,15 @@ class CellCoaddsFile(CoaddFile):
         hdu = self._hdu(number)
         with reading_errors(self.path, self._name(number)):
             return hdu.read() if hdu.get_nrows() else None
+
+    def _check_hdu_count(self) -> None:
+        """A file cut at an HDU boundary is valid FITS: the count our writer states in
+        CCNHDU must match (files without it, e.g. Rubin's own, are read as they are)."""
+        primary = self._header(0)
+        if "CCNHDU" in primary:
+            stated, count = self._int(primary, "CCNHDU", 0), len(self._fits)
+            if stated != count:
+                raise self._fail(0, f"CCNHDU says {stated} HDUs, the file has {count} (truncated?)")
 
     def _int(self, header: Any, key: str, number: int = 1) -> int:
         value = header.get(key)

@@ -45,6 +45,7 @@ from cellcoadd.errors import (
 )
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io.foreign.lsst_images_parts import (
     KEY_CELL,
     KEY_CELL_WCS,
@@ -274,6 +275,7 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
 
 
 def _read_path(images: Any, path: Path) -> Any:
+    gate_read(path, what="lsst-images file")  # a regular file, symlinks resolved
     name = path.name.lower()
     if name.endswith((".h5", ".hdf5")):
         raise CellCoaddFormatError(
