@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "cellcoadd"
 LEVEL = {
     "_version": 0,
     "_lazy": 0,
-    "errors": 0,
+    "errors": -1,  # the exception classes import nothing of cellcoadd: every layer may raise them
     "geometry": 0,
     "model": 1,
     "io": 2,
