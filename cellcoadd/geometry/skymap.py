@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -66,6 +66,32 @@ class SkyMapSpec(BaseModel):
             if not (math.isfinite(ra) and -90.0 <= dec <= 90.0):
                 raise ValueError(f"tract centre ({ra}, {dec}) is not a valid (ra, dec) in deg")
         return tuple((float(ra) % 360.0, float(dec)) for ra, dec in centers)
+
+
+class _LsstTracts(Sequence[Tract]):
+    """The tracts of Rubin's ring sky map, made on first use (18,938 of them by default:
+    a lookup or a file read needs only a few)."""
+
+    def __init__(self, layout: LsstRings, config: SkyMapConfig) -> None:
+        self._layout, self._config = layout, config
+        self._made: dict[int, Tract] = {}
+
+    def __len__(self) -> int:
+        return self._layout.n_tracts
+
+    @overload
+    def __getitem__(self, index: int) -> Tract: ...
+    @overload
+    def __getitem__(self, index: slice) -> Sequence[Tract]: ...
+    def __getitem__(self, index: int | slice) -> Tract | Sequence[Tract]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        tract_id = int(index)
+        if tract_id not in self._made:
+            region = LsstRingRegion(self._layout, tract_id)
+            center = self._layout.center(tract_id)
+            self._made[tract_id] = Tract(tract_id, center, self._config, region)
+        return self._made[tract_id]
 
 
 class SkyMap:
@@ -155,11 +181,7 @@ class SkyMap:
         config = SkyMapConfig.model_validate({**config.model_dump(), **derived})
         layout = LsstRings(config.n_rings, ra_start)
         spec = SkyMapSpec(kind="lsst", config=config, ra_start=ra_start)
-        tracts = [
-            Tract(tract_id, layout.center(tract_id), config, LsstRingRegion(layout, tract_id))
-            for tract_id in range(layout.n_tracts)
-        ]
-        skymap = cls(spec, tracts)
+        skymap = cls(spec, _LsstTracts(layout, config))  # type: ignore[arg-type]
         skymap._lsst = layout
         return skymap
 

@@ -10,7 +10,14 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from astropy.wcs import WCS
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from cellcoadd._version import __version__
 from cellcoadd.errors import InvalidCoaddError
@@ -23,6 +30,7 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.observations import Observations
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
@@ -124,6 +132,9 @@ class PatchMetadata(BaseModel):
         cellcoadd version that built the coadd.
     format_version : str
         ``"MAJOR.MINOR"`` of the data model (:data:`FORMAT_VERSION` when created).
+    observations : Observations or None
+        Instrument, and physical filter and observing day of each visit, when known (from
+        a Rubin coadd); left out of the stored JSON when None.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -147,6 +158,15 @@ class PatchMetadata(BaseModel):
     build_config: BuildConfig = Field(default_factory=BuildConfig)
     software_version: str = __version__
     format_version: str = FORMAT_VERSION
+    observations: Observations | None = None
+
+    @model_serializer(mode="wrap")
+    def _drop_unknown_observations(self, handler: Any) -> dict[str, Any]:
+        # added after format 1.2: absent when unknown, so such files stay byte-identical
+        data = handler(self)
+        if data.get("observations", 0) is None:
+            del data["observations"]
+        return data
 
     @field_validator("band")
     @classmethod
