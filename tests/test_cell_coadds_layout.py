@@ -100,6 +100,23 @@ def test_empty_cells_are_absent_from_the_grid(tmp_path, patch):
     assert len(used) == n_used and used["overlaps_center"].all()
 
 
+def test_mask_planes_carry_rubin_names(tmp_path, patch):
+    """MASKDEF lists afw's names (our EDGE, an input detector's edge, is SENSOR_EDGE)."""
+    path = api.write(patch, tmp_path / "cells.fits", layout="cell_coadds")
+    with fitsio.FITS(str(path)) as hdus:
+        table = hdus["MASKDEF"].read()
+    pairs = zip(table["MASK_NAME"], table["BIT_VALUE"], strict=True)
+    names = {str(name).strip(): int(bit) for name, bit in pairs}
+    ours = patch.metadata.mask_bits.bits
+    assert names["SENSOR_EDGE"] == ours["EDGE"] and "EDGE" not in names
+    assert {k: names[k] for k in ("SAT", "CR", "INTRP", "BAD", "NO_DATA")} == {
+        k: ours[k] for k in ("SAT", "CR", "INTRP", "BAD", "NO_DATA")
+    }
+    lsst = tmp_path / "lsst.fits"
+    _lsst_part(path, lsst)
+    assert api.read(lsst).metadata.mask_bits == patch.metadata.mask_bits  # and back
+
+
 def test_an_empty_cell_that_is_not_canonical_keeps_a_row(tmp_path):
     original = make_patch(seed=5, empty=((1, 1),))
     cell = original[1, 1]

@@ -40,6 +40,7 @@ from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import cell_record_json
 from cellcoadd.io.coadd.format_version import sha256_hex
 from cellcoadd.io.coadd.inputs_table import inputs_to_array
+from cellcoadd.io.foreign.mask_planes import to_rubin
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.observations import Observations
@@ -376,7 +377,8 @@ def _apcorr(stored: list[CellCoadd], grid: CellGrid) -> np.ndarray:
 
 
 def _maskdef(meta: PatchMetadata) -> np.ndarray:
-    bits = sorted(meta.mask_bits.bits.items(), key=lambda item: item[1])
+    # Rubin's (afw) plane names: see cellcoadd.io.foreign.mask_planes
+    bits = sorted(to_rubin(meta.mask_bits.bits, "afw").items(), key=lambda item: item[1])
     width = max([1, *(len(name) for name, _ in bits)])
     return np.array(
         [(name.encode(), bit) for name, bit in bits],

@@ -46,6 +46,7 @@ from cellcoadd.io.foreign.cell_coadds_layout import (
     grid_of,
     shape_from_quadrupole,
 )
+from cellcoadd.io.foreign.mask_planes import from_rubin
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
@@ -319,6 +320,7 @@ class CellCoaddsFile(CoaddFile):
             if not 0 <= bit < MAX_BITS:
                 raise self._fail(number, f"mask plane {name!r} is bit {bit}; cellcoadd has 0..30")
             bits[name] = bit
+        bits = from_rubin(bits, "afw")  # our names for Rubin's (afw) plane names
         if "NO_DATA" not in bits:
             bits["NO_DATA"] = min(set(range(MAX_BITS)) - set(bits.values()))
         with reading_errors(self.path, self._name(number)):
