@@ -26,6 +26,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import NearestCenterRegion
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import check_band_name
@@ -37,7 +38,7 @@ from cellcoadd.model.units import (
     check_units,
     mask_plane_cards,
     stored_units,
-    unit_cards,
+    unit_cards_by_kind,
 )
 
 #: Version ``"MAJOR.MINOR"`` of the stored data model and file layouts. A major bump means
@@ -53,6 +54,8 @@ UNITS_VERSION = (1, 2)
 
 _VERSION_PATTERN = re.compile(r"^(\d+)\.(\d+)$")
 
+#: Planes that can be stitched: those on the cell grid (the type checker's copy of
+#: :func:`~cellcoadd.model.planes.grid_plane_names`; a test keeps them equal).
 Plane = Literal["image", "mask", "variance", "mfrac", "noise"]
 
 
@@ -227,16 +230,20 @@ class PatchMetadata(BaseModel):
         return u.Unit(self.units)
 
     def unit_cards(self) -> dict[str, list[tuple[str, object, str]]]:
-        """``BUNIT`` (and for counts ``MAGZERO``) keywords of the ``image``, ``noise`` and
-        ``variance`` planes, and ``MP_<NAME> = bit`` keywords of the ``mask`` plane, as
-        ``(name, value, comment)`` by plane: FITS header cards and HDF5 attributes.
+        """``BUNIT`` (and for counts ``MAGZERO``) keywords of the planes in flux or flux
+        squared (``image``, ``noise``, ``variance``), and ``MP_<NAME> = bit`` keywords of
+        the mask-bit plane (``mask``), as ``(name, value, comment)`` by plane (each plane's
+        :attr:`~cellcoadd.model.planes.PlaneSpec.unit`): FITS header cards and HDF5
+        attributes.
 
         Mask-bit names that are not upper-case ASCII (letters, digits, ``_``) are left
         out (FITS keywords cannot hold them); the metadata JSON names every bit.
         """
-        cards = unit_cards(self.units, self.zero_point)
-        cards["mask"] = mask_plane_cards(self.mask_bits.bits)
-        return cards
+        by_kind = unit_cards_by_kind(self.units, self.zero_point)
+        by_kind["mask_bits"] = mask_plane_cards(self.mask_bits.bits)
+        return {
+            spec.name: by_kind[spec.unit] for spec in cell_planes.PLANES if spec.unit in by_kind
+        }
 
     @property
     def n_noise(self) -> int:
@@ -460,9 +467,10 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             A missing or empty cell leaves NaN there (float planes) or the ``NO_DATA`` bit
             (mask plane).
         """
-        if plane not in ("image", "variance", "mfrac", "mask", "noise"):
+        if plane not in cell_planes.grid_plane_names():
             raise ValueError(f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise")
-        if plane == "noise":
+        spec = cell_planes.plane(plane)
+        if spec.per_realization:
             if noise_index is None or not 0 <= noise_index < self.metadata.n_noise:
                 raise ValueError(
                     f"plane 'noise' needs noise_index in [0, {self.metadata.n_noise}), "
@@ -472,16 +480,20 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             raise ValueError(f"noise_index applies to plane 'noise' only, not {plane!r}")
         box = self.patch_inner_bbox
         side = self.metadata.cell_inner
-        if plane == "mask":
-            out = np.full(box.shape, self.metadata.mask_bits.value("NO_DATA"), dtype=np.int32)
+        # no data: the NO_DATA bit in integer (mask) planes, NaN in float ones
+        if spec.dtype.kind in "iu":
+            fill: float = self.metadata.mask_bits.value("NO_DATA")
         else:
-            out = np.full(box.shape, np.nan, dtype=np.float32)
+            fill = np.nan
+        out = np.full(box.shape, fill, dtype=spec.dtype)
         for index in self.inner_cell_indices:
             cell = self.cells.get(index)
             if cell is None or cell.is_empty:
                 continue
             views = cell.inner
-            values = views.noise[noise_index] if plane == "noise" else getattr(views, plane)
+            values = getattr(views, plane)
+            if spec.per_realization:
+                values = values[noise_index]
             x0 = index[0] * side - box.x_start
             y0 = index[1] * side - box.y_start
             out[y0 : y0 + side, x0 : x0 + side] = values

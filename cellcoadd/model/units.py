@@ -97,21 +97,21 @@ def variance_unit(unit: str) -> str:
     return f"{unit}2"
 
 
-def unit_cards(unit: str, zero_point: float) -> dict[str, list[tuple[str, object, str]]]:
-    """Unit keywords of each plane that has a unit, as ``(name, value, comment)``.
+def unit_cards_by_kind(unit: str, zero_point: float) -> dict[str, list[tuple[str, object, str]]]:
+    """Unit keywords of the planes by unit kind (:data:`~cellcoadd.model.planes.UnitKind`)
+    that has one, as ``(name, value, comment)``.
 
-    ``image`` and ``noise``: ``BUNIT`` (plus ``MAGZERO`` for counts); ``variance``:
-    ``BUNIT`` of the unit squared (plus ``MAGZERO``). Used for FITS header cards and HDF5
-    attributes alike.
+    ``"flux"`` (``image``, ``noise``): ``BUNIT`` (plus ``MAGZERO`` for counts);
+    ``"flux_squared"`` (``variance``): ``BUNIT`` of the unit squared (plus ``MAGZERO``).
+    Used for FITS header cards and HDF5 attributes alike.
     """
     magzero: list[tuple[str, object, str]] = []
     if unit != "nJy":
         magzero = [("MAGZERO", float(zero_point), "[mag] AB zero point of the pixel values")]
     flux = [("BUNIT", unit, "pixel unit"), *magzero]
     return {
-        "image": flux,
-        "noise": flux,
-        "variance": [("BUNIT", variance_unit(unit), "pixel unit (variance)"), *magzero],
+        "flux": flux,
+        "flux_squared": [("BUNIT", variance_unit(unit), "pixel unit (variance)"), *magzero],
     }
 
 
@@ -142,7 +142,7 @@ __all__ = [
     "legacy_units",
     "mask_plane_cards",
     "normalise_unit",
-    "unit_cards",
+    "unit_cards_by_kind",
     "variance_unit",
     "zero_point_of",
 ]

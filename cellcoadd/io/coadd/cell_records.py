@@ -9,12 +9,10 @@ from typing import Any
 from astropy.wcs import WCS
 
 from cellcoadd.geometry.box import Box
+from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchMetadata
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
-
-#: Pixel planes of a cell (besides the inputs table).
-PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
 
 
 class WcsRecords:
@@ -82,14 +80,9 @@ def check_cell_geometry(metadata: PatchMetadata, identity: dict[str, Any]) -> No
 
 
 def expected_shapes(metadata: PatchMetadata, outer: Box) -> dict[str, tuple[int, ...]]:
-    """Array shape of every plane of a cell with outer box ``outer``."""
-    ny, nx = outer.shape
-    psf = metadata.psf_size
+    """Array shape of every plane (:data:`~cellcoadd.model.planes.PLANES`) of a cell with
+    outer box ``outer``."""
     return {
-        "image": (ny, nx),
-        "mask": (ny, nx),
-        "variance": (ny, nx),
-        "mfrac": (ny, nx),
-        "noise": (metadata.n_noise, ny, nx),
-        "psf": (psf, psf),
+        spec.name: spec.shape(outer.shape, metadata.n_noise, metadata.psf_size)
+        for spec in planes.PLANES
     }

@@ -2,8 +2,9 @@
 
 Root attributes identify the file (``cellcoadd_format``), its ``format_version`` and the
 SHA-256 of the metadata JSON stored in the ``/metadata`` uint8 dataset. Each cell is a
-group ``/cells/<cx>_<cy>`` with datasets ``image``, ``mask``, ``variance``, ``mfrac``,
-``noise`` (K, ny, nx), ``psf`` and ``inputs`` (compound), and attributes ``cell`` (identity
+group ``/cells/<cx>_<cy>`` with one dataset per plane of
+:data:`~cellcoadd.model.planes.PLANES` (``image``, ``mask``, ``variance``, ``mfrac``,
+``noise`` (K, ny, nx), ``psf``), ``inputs`` (compound), and attributes ``cell`` (identity
 JSON: tract, index, boxes, exact WCS) and ``cell_sha256``.
 
 Every non-empty dataset is chunked as a single chunk (one cell's plane) with a Fletcher-32
@@ -44,22 +45,13 @@ from cellcoadd.io.coadd.format_version import (
 )
 from cellcoadd.io.coadd.hdf5_chunks import Attribute, ChunkScratch, Member, ObjectMaker
 from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd
 
 _LIBVER = ("v110", "v110")
 _GROUP_NAME = re.compile(r"^(-?\d+)_(-?\d+)$")
-_DTYPES: dict[str, np.dtype] = {
-    "image": np.dtype("<f4"),
-    "mask": np.dtype("<i4"),
-    "variance": np.dtype("<f4"),
-    "mfrac": np.dtype("<f4"),
-    "noise": np.dtype("<f4"),
-    "psf": np.dtype("<f8"),
-}
-#: Objects every cell group holds, nothing else.
-_CELL_OBJECTS = frozenset((*_DTYPES, "inputs"))
 #: Objects of the root group.
 _ROOT_OBJECTS = frozenset(("metadata", "cells"))
 #: Version from which the root attribute ``contents`` lists the cells and planes.
@@ -181,8 +173,12 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
     inputs = [inputs_to_array(cell.inputs, ascii_only=False) for cell in batch]
     records = [cell_record_json(cell, cells.records).encode("ascii") for cell in batch]
     chunks: list[dict[str, memoryview]] = [{} for _ in batch]
-    for name in () if cells.compress else (*_DTYPES, "inputs"):
-        arrays = inputs if name == "inputs" else [_stored_plane(cell, name) for cell in batch]
+    for name in () if cells.compress else cell_planes.cell_objects():
+        arrays = (
+            inputs
+            if name == cell_planes.INPUTS
+            else [_stored_plane(cell, cell_planes.plane(name)) for cell in batch]
+        )
         sizes = {array.nbytes for array in arrays}
         if sizes == {0}:
             continue
@@ -202,14 +198,17 @@ def contents_json(indices: list[tuple[int, int]]) -> str:
     """ASCII JSON of the root attribute ``contents``: the cells' group names (sorted) and
     the objects of each cell group."""
     return json.dumps(
-        {"cells": sorted(group_name(index) for index in indices), "planes": sorted(_CELL_OBJECTS)},
+        {
+            "cells": sorted(group_name(index) for index in indices),
+            "planes": sorted(cell_planes.cell_objects()),
+        },
         separators=(",", ":"),
     )
 
 
-def _stored_plane(cell: CellCoadd, plane: str) -> np.ndarray:
+def _stored_plane(cell: CellCoadd, spec: cell_planes.PlaneSpec) -> np.ndarray:
     """A plane of ``cell`` as stored: C-contiguous, little-endian, the plane's dtype."""
-    return np.ascontiguousarray(getattr(cell, plane), dtype=_DTYPES[plane])
+    return np.ascontiguousarray(getattr(cell, spec.name), dtype=spec.stored_dtype)
 
 
 class _CellWriter:
@@ -232,21 +231,22 @@ def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> No
     identity attributes (chunks, inputs table and record as ``prepared``)."""
     maker = writer.maker
     members: list[Member] = []
-    for plane in _DTYPES:
+    for spec in cell_planes.PLANES:
+        plane = spec.name
         # planes share shape and dtype: the name travels with the data so that a moved or
         # swapped dataset is refused rather than read as another plane
         attributes: list[Attribute] = [("plane", plane)]
         attributes += [(key, value) for key, value, _ in writer.plane_attrs.get(plane, [])]
-        members.append((plane, _stored_plane(cell, plane), attributes, prepared.chunks.get(plane)))
+        members.append((plane, _stored_plane(cell, spec), attributes, prepared.chunks.get(plane)))
     # one copy of a template group (its datasets and their attributes), then the chunks
     group = maker.group_of(writer.cells, group_name(cell.index), members)
     maker.dataset(
         group,
-        "inputs",
+        cell_planes.INPUTS,
         prepared.inputs,
-        [("plane", "inputs")],
+        [("plane", cell_planes.INPUTS)],
         repeated=True,
-        chunk=prepared.chunks.get("inputs"),
+        chunk=prepared.chunks.get(cell_planes.INPUTS),
     )
     record = prepared.record
     maker.attributes(group, [("cell", record.decode("ascii")), ("cell_sha256", sha256_hex(record))])
@@ -324,7 +324,7 @@ class Hdf5CoaddFile(CoaddFile):
             cells, planes = listed["cells"], listed["planes"]
         if self.verify and digest != sha256_hex(payload + contents):
             raise CellCoaddFormatError(self.path, "SHA-256 of the list of cells mismatch")
-        if sorted(planes) != sorted(_CELL_OBJECTS):
+        if sorted(planes) != sorted(cell_planes.cell_objects()):
             raise CellCoaddFormatError(self.path, f"unexpected cell planes {planes}")
         found = set(groups.values())
         missing, extra = sorted(set(cells) - found), sorted(found - set(cells))
@@ -346,7 +346,7 @@ class Hdf5CoaddFile(CoaddFile):
             if not isinstance(group, h5py.Group):
                 raise ValueError(f"{group.name} is not a group")
             _single_name(group)
-            _check_members(group, _CELL_OBJECTS, exact=True)
+            _check_members(group, frozenset(cell_planes.cell_objects()), exact=True)
             return key, group
 
     def read_cell(self, index: tuple[int, int]) -> CellCoadd:
@@ -366,7 +366,8 @@ class Hdf5CoaddFile(CoaddFile):
             check_cell_geometry(self.metadata, identity)
         shapes = expected_shapes(self.metadata, identity["outer_bbox"])
         planes = {}
-        for plane, dtype in _DTYPES.items():
+        for spec in cell_planes.PLANES:
+            plane, dtype = spec.name, spec.stored_dtype
             with reading_errors(self.path, f"cell {key} plane {plane}"):
                 dataset = _plain_dataset(group, plane, self._size)
                 if dataset.shape != shapes[plane]:
@@ -383,7 +384,7 @@ class Hdf5CoaddFile(CoaddFile):
 
     def _read_inputs(self, key: tuple[int, int], group: h5py.Group) -> list[InputRecord]:
         with reading_errors(self.path, f"cell {key} inputs"):
-            dataset = _plain_dataset(group, "inputs", self._size)
+            dataset = _plain_dataset(group, cell_planes.INPUTS, self._size)
             if dataset.ndim != 1 or dataset.dtype.names is None:
                 raise ValueError(f"inputs dataset has shape {dataset.shape}, dtype {dataset.dtype}")
             self._check_checksummed(dataset)
