@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from collections.abc import Iterable, Iterator, Mapping
@@ -29,6 +30,7 @@ from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
+from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.observations import Observations
@@ -229,6 +231,19 @@ class PatchMetadata(BaseModel):
 
         return u.Unit(self.units)
 
+    @cached_property
+    def cell_common(self) -> CellCommon:
+        """What every cell of the patch carries (:attr:`CellCoadd.common`)."""
+        return CellCommon(
+            units=self.units,
+            zero_point=self.zero_point,
+            band=self.band,
+            mask_bits=self.mask_bits,
+            tract=self.tract,
+            patch=self.patch,
+            skymap=self.skymap_config.name,
+        )
+
     def unit_cards(self) -> dict[str, list[tuple[str, object, str]]]:
         """``BUNIT`` (and for counts ``MAGZERO``) keywords of the planes in flux or flux
         squared (``image``, ``noise``, ``variance``), and ``MP_<NAME> = bit`` keywords of
@@ -375,6 +390,14 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             if cell.is_empty and not np.all(cell.mask & no_data):
                 raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
             checked[key] = cell
+        common = metadata.cell_common
+        for key, cell in checked.items():  # a cell taken from the patch describes itself
+            if cell.common != common:
+                # a shallow copy (the arrays are shared): a cell given here may belong to
+                # another patch too, whose description it keeps
+                cell = copy.copy(cell)
+                cell.attach(common)
+                checked[key] = cell
         self.cells: dict[tuple[int, int], CellCoadd] = {k: checked[k] for k in sorted(checked)}
 
     def __getitem__(self, index: tuple[int, int]) -> CellCoadd:

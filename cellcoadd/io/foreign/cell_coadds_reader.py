@@ -571,6 +571,7 @@ class CellCoaddsFile(CoaddFile):
                     psf_size=meta.psf_size,
                     inputs=inputs,
                     mask_bits=meta.mask_bits,
+                    common=meta.cell_common,
                 )
         hdu = self._hdu(1)
         where = f"{self._name(1)} row {row} (cell {key})"
@@ -598,6 +599,7 @@ class CellCoaddsFile(CoaddFile):
                 psf=_native(data["psf"]),
                 inputs=inputs,
                 **identity,
+                common=meta.cell_common,
             )
 
     def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:
