@@ -25,7 +25,7 @@ from cellcoadd.model.cell_coadd import CellCoadd, CellPlanes
 from cellcoadd.model.patch_coadd import Plane
 
 #: Keyword arguments of CellCoadd that are not planes.
-_NOT_PLANES = {"inputs", "tract", "index", "inner_bbox", "outer_bbox", "wcs"}
+_NOT_PLANES = {"inputs", "tract", "index", "inner_bbox", "outer_bbox", "wcs", "common"}
 #: FITS tile compression of each compression kind (None: not compressed).
 _FITS_COMPRESSION = {"float_bits": "GZIP_2", "integer": "RICE_1", "none": None}
 
