@@ -497,6 +497,21 @@ def test_legacy_units_need_a_zero_point(tmp_path):
         CellCoaddsFile(str(path), legacy_zero_point=27.0)
 
 
+def test_cli_takes_the_legacy_zero_point(tmp_path):
+    path = tmp_path / "lsst.fits"
+    _write_by_hand(path, units="legacy")
+    runner = CliRunner()
+    result = runner.invoke(info_command, [str(path)])
+    assert result.exit_code != 0 and "no MAGZERO" in result.output
+    result = runner.invoke(info_command, [str(path), "--json", "--legacy-zero-point", "27"])
+    assert result.exit_code == 0, result.output
+    assert '"zero_point": 27.0' in result.output
+    ours = tmp_path / "ours.h5"
+    result = runner.invoke(convert_command, [str(path), str(ours), "--legacy-zero-point", "27"])
+    assert result.exit_code == 0, result.output
+    assert api.read(ours).metadata.zero_point == 27.0
+
+
 def test_counts_are_written_with_their_zero_point(tmp_path):
     counts = make_patch(seed=8)
     meta = counts.metadata.model_copy(

@@ -151,7 +151,7 @@ def test_counts_ids_and_centres_match_the_published_layout(lsst):
 
 
 @pytest.mark.parametrize("tract", [0, 1, 500, 4_016, 5_063, 9_468, 9_469, 15_000, 18_937])
-def test_tract_box_and_wcs_match_to_1e9_pixel(lsst, tract):
+def test_tract_box_and_wcs_match_the_published_algorithm(lsst, tract):
     wcs, side = ref_tract_wcs(tract)
     ours = lsst[tract]
     assert ours.bbox.nx == ours.bbox.ny == side == 30_000
@@ -164,13 +164,13 @@ def test_tract_box_and_wcs_match_to_1e9_pixel(lsst, tract):
     rng = np.random.default_rng(tract)
     x, y = rng.uniform(-0.5, side - 0.5, (2, 200))
     ra, dec = wcs.all_pix2world(x, y, 0)
-    fx, fy = ours.sky_to_pixel(ra, dec)
-    assert max(np.max(np.abs(fx - x)), np.max(np.abs(fy - y))) < 1e-8
+    fx, fy = ours.sky_to_pixel(ra, dec)  # the exact tangent point: ~1e-9 px
+    assert max(np.max(np.abs(fx - x)), np.max(np.abs(fy - y))) < 3e-9
     # The astropy WCS is kept in the form a FITS header round trip gives (14 significant
-    # digits of CRVAL and CD, as every file stores them): ~5e-12 deg, up to ~1e-7 px.
+    # digits of CRVAL and CD, as every file stores them): ~5e-12 deg, a few 1e-8 px.
     np.testing.assert_allclose(ours.wcs.wcs.crval, wcs.wcs.crval, rtol=2e-14, atol=1e-14)
     wx, wy = ours.wcs.all_world2pix(ra, dec, 0)
-    assert max(np.max(np.abs(wx - x)), np.max(np.abs(wy - y))) < 2e-7
+    assert max(np.max(np.abs(wx - x)), np.max(np.abs(wy - y))) < 1e-7
 
 
 def test_ten_thousand_positions_poles_and_ra_wrap(lsst):

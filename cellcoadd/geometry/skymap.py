@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import Literal, overload
+from typing import Any, Literal, overload
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
 
 from cellcoadd.errors import ConfigError
 from cellcoadd.geometry.config import SkyMapConfig
@@ -58,6 +58,14 @@ class SkyMapSpec(BaseModel):
     config: SkyMapConfig
     centers: tuple[tuple[float, float], ...] = ()
     ra_start: float = Field(0.0, ge=0.0, lt=360.0, description="deg, lsst kind only")
+
+    @model_serializer(mode="wrap")
+    def _lsst_fields_only_for_lsst(self, handler: Any) -> dict[str, Any]:
+        # other kinds keep the JSON they always had
+        data = handler(self)
+        if self.kind != "lsst":
+            data.pop("ra_start", None)
+        return data
 
     @field_validator("centers")
     @classmethod
