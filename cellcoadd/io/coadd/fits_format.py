@@ -268,27 +268,35 @@ def _nonfinite_keys(data: np.ndarray) -> list[dict[str, Any]]:
     ]
 
 
-def _restore_nonfinite(data: np.ndarray, header: Any) -> np.ndarray:
-    """Put back the bit patterns listed by :func:`_nonfinite_keys` (ValueError if corrupt)."""
+def _restore_nonfinite(data: np.ndarray, header: Any, path: str, context: str) -> np.ndarray:
+    """Put back the bit patterns listed by :func:`_nonfinite_keys`.
+
+    Raises ``CellCoaddFormatError`` naming ``path`` and ``context`` (the cell and plane)
+    when the list is corrupt or does not fit the plane.
+    """
+
+    def fail(problem: str) -> CellCoaddFormatError:
+        return CellCoaddFormatError(path, f"{context}: {problem}")
+
     count = header.get("CCNFNUM")
     if count is None:
         return data
     if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= data.size:
-        raise ValueError(f"CCNFNUM = {count!r}")
+        raise fail(f"CCNFNUM = {count!r}")
     try:
         raw = zlib.decompress(base64.b64decode(str(header.get("CCNFBITS", "")), validate=True))
     except (binascii.Error, zlib.error) as err:
-        raise ValueError(f"CCNFBITS cannot be decoded: {err}") from None
+        raise fail(f"CCNFBITS cannot be decoded: {err}") from None
     if len(raw) != 8 * count:
-        raise ValueError(f"CCNFBITS holds {len(raw)} bytes, expected {8 * count}")
+        raise fail(f"CCNFBITS holds {len(raw)} bytes, expected {8 * count}")
     where = np.cumsum(np.frombuffer(raw[: 4 * count], dtype="<u4").astype(np.int64))
     restored = np.frombuffer(raw[4 * count :], dtype="<u4")
     out = np.array(data, dtype=np.float32, copy=True).reshape(-1)
     bits = out.view(np.uint32)
     if where[-1] >= out.size or np.any(np.diff(where) <= 0) or np.any(bits[where] != _CFITSIO_NAN):
-        raise ValueError("CCNFBITS lists pixels that are not the compressed NaNs")
+        raise fail("CCNFBITS lists pixels that are not the compressed NaNs")
     if np.any(np.isfinite(restored.view(np.float32))):
-        raise ValueError("CCNFBITS restores finite values")
+        raise fail("CCNFBITS restores finite values")
     bits[where] = restored
     return out.reshape(data.shape)
 
@@ -523,9 +531,14 @@ class FitsCoaddFile(CoaddFile):
                 # Native byte order first, then reinterpret the bits.
                 data = data.astype(np.int32, copy=False).view(np.float32)
             elif "CCNFNUM" in header:
+                where = f"cell {key} plane {plane}"
                 if spec.compression != "float_bits" or data.dtype.kind != "f":
-                    raise ValueError(f"CCNFNUM on a {data.dtype} {plane} plane")
-                data = _restore_nonfinite(data.astype(np.float32, copy=False), header)
+                    raise CellCoaddFormatError(
+                        self.path, f"{where}: CCNFNUM on a {data.dtype} plane"
+                    )
+                data = _restore_nonfinite(
+                    data.astype(np.float32, copy=False), header, self.path, where
+                )
             if (data.dtype.kind, data.itemsize) != (expected.kind, expected.itemsize):
                 raise ValueError(f"dtype {data.dtype}, expected {expected}")
             return data
