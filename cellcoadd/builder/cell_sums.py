@@ -14,8 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cellcoadd.builder.footprint import footprint_box
 from cellcoadd.builder.kernels.warp import warp_planes
+from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import draw_exposure_psf
 from cellcoadd.builder.select import Candidate
 from cellcoadd.geometry.box import Box
