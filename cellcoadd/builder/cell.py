@@ -45,6 +45,7 @@ from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping, footprint_box
 from cellcoadd.builder.psf import PsfError, psf_moments
 from cellcoadd.builder.select import Candidate, Rejection, select_exposure
+from cellcoadd.errors import CellCoaddValueError, ConfigError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -105,18 +106,20 @@ class CellBlock:
 
     def __init__(self, cells: Sequence[Cell], settings: BuildSettings) -> None:
         if not cells:
-            raise ValueError("a block needs at least one cell")
+            raise CellCoaddValueError("a block needs at least one cell")
         if len({cell.tract for cell in cells}) > 1:
-            raise ValueError("the cells of a block must belong to one tract")
+            raise CellCoaddValueError("the cells of a block must belong to one tract")
         self.cells = list(cells)
         self.current = self.cells[0]
         config = settings.config
         for cell in self.cells:
             self.current = cell
             if config.psf_size > min(cell.outer_bbox.shape):
-                raise ValueError(
+                raise ConfigError(
                     f"psf_size {config.psf_size} exceeds the outer box {cell.outer_bbox} of "
-                    f"cell {cell.index}"
+                    f"cell {cell.index}",
+                    value=config.psf_size,
+                    cell=cell.index,
                 )
         self.settings, self.config = settings, config
         self.sums = BlockSums(

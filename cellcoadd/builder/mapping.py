@@ -27,7 +27,7 @@ from astropy.wcs.wcs import NoConvergence
 
 from cellcoadd.builder.kernels.descriptor import WARP_KERNEL, KernelDescriptor
 from cellcoadd.builder.kernels.node_interpolation import interpolate_nodes
-from cellcoadd.errors import MappingError
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, GeometryError, MappingError
 from cellcoadd.geometry.box import Box
 
 # Inverse-SIP iterations stop at this step (exposure px): far below any tolerance used here
@@ -133,7 +133,9 @@ class PixelMapping:
         the same grid values with the same weights, so any sub-box gives the same numbers.
         """
         if not self.box.contains_box(box):
-            raise ValueError(f"{box} is not inside the mapped box {self.box}")
+            raise GeometryError(
+                f"{box} is not inside the mapped box {self.box}", value=box, allowed=self.box
+            )
         rows = slice(box.y_start - self.box.y_start, box.y_stop - self.box.y_start)
         cols = slice(box.x_start - self.box.x_start, box.x_stop - self.box.x_start)
 
@@ -485,9 +487,13 @@ def grid_mapping(
     evaluate every pixel exactly (no verified grid; part of the box off the exposure's
     projection), which for a large box is slow and memory-hungry."""
     if not tolerance > 0 or not area_tolerance > 0:
-        raise ValueError("tolerance and area_tolerance must be positive")
+        raise CellCoaddValueError(
+            "tolerance and area_tolerance must be positive", value=(tolerance, area_tolerance)
+        )
     if grid_step < 1:
-        raise ValueError(f"grid_step must be positive, got {grid_step}")
+        raise CellCoaddRangeError(
+            f"grid_step must be positive, got {grid_step}", value=grid_step, low=1
+        )
     if box.is_empty:
         empty = np.zeros(box.shape)
         return _frozen_mapping(box, empty, empty.copy(), empty.copy(), 0.0, 0)

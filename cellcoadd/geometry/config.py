@@ -6,6 +6,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 
+from cellcoadd.errors import ConfigError
+
 #: Fields added after format 1.2; left out of the JSON when unset, so that files without
 #: them are written byte for byte as before and older readers still accept them.
 _OPTIONAL_FIELDS = ("tangent_pixel", "name")
@@ -74,23 +76,27 @@ class SkyMapConfig(BaseModel):
     @model_validator(mode="after")
     def _check_consistency(self) -> SkyMapConfig:
         if self.cell_border > self.cell_inner:
-            raise ValueError(
+            raise ConfigError(
                 f"cell_border ({self.cell_border} px) must not exceed cell_inner "
-                f"({self.cell_inner} px): a cell would overlap beyond its nearest neighbours"
+                f"({self.cell_inner} px): a cell would overlap beyond its nearest neighbours",
+                value=self.cell_border,
+                allowed=(0, self.cell_inner),
             )
         if self.patch_border_cells > self.cells_per_patch:
-            raise ValueError(
+            raise ConfigError(
                 f"patch_border_cells ({self.patch_border_cells}) must not exceed "
                 f"cells_per_patch ({self.cells_per_patch})"
             )
         if self.tangent_pixel is not None and self.tangent_pixel >= self.tract_pixels:
-            raise ValueError(
+            raise ConfigError(
                 f"tangent_pixel {self.tangent_pixel} is outside the tract's "
                 f"{self.tract_pixels} pixels"
             )
         if self.tract_pixels > 2_000_000:
-            raise ValueError(
-                f"a tract of {self.tract_pixels} pixels on a side is implausibly large"
+            raise ConfigError(
+                f"a tract of {self.tract_pixels} pixels on a side is implausibly large",
+                value=self.tract_pixels,
+                allowed=(1, 2_000_000),
             )
         return self
 

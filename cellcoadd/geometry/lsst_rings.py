@@ -25,7 +25,7 @@ from functools import cached_property
 
 import numpy as np
 
-from cellcoadd.errors import ConfigError
+from cellcoadd.errors import CellCoaddIndexError, ConfigError
 from cellcoadd.geometry.regions import InnerRegion
 
 __all__ = ["LsstRings", "LsstRingRegion", "lsst_tract_box"]
@@ -76,7 +76,11 @@ class LsstRings:
     def ring_and_index(self, tract_id: int) -> tuple[int, int]:
         """``(ring, index in ring)``; ring -1 is the south cap, ``n_rings`` the north cap."""
         if not 0 <= tract_id < self.n_tracts:
-            raise IndexError(f"tract {tract_id} is not in this sky map ({self.n_tracts} tracts)")
+            raise CellCoaddIndexError(
+                f"tract {tract_id} is not in this sky map ({self.n_tracts} tracts)",
+                value=tract_id,
+                allowed=(0, self.n_tracts),
+            )
         if tract_id == 0:
             return -1, 0
         if tract_id == self.n_tracts - 1:

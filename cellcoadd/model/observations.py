@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cellcoadd.errors import CellCoaddValueError
+
 #: Longest instrument or physical-filter name kept (Rubin's tables hold 32 characters).
 MAX_NAME = 32
 
@@ -41,7 +43,7 @@ class Observations(BaseModel):
     def _sorted_unique(cls, visits: tuple[VisitInfo, ...]) -> tuple[VisitInfo, ...]:
         ids = [v.visit for v in visits]
         if len(set(ids)) != len(ids):
-            raise ValueError("a visit is listed twice")
+            raise CellCoaddValueError("a visit is listed twice", value=ids)
         return tuple(sorted(visits, key=lambda v: v.visit))
 
     def visit(self, visit: int) -> VisitInfo | None:

@@ -21,7 +21,13 @@ from pydantic import (
 )
 
 from cellcoadd._version import __version__
-from cellcoadd.errors import InvalidCoaddError
+from cellcoadd.errors import (
+    CellCoaddIncompatibleValuesError,
+    CellCoaddRangeError,
+    CellCoaddTypeError,
+    CellCoaddValueError,
+    InvalidCoaddError,
+)
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import NearestCenterRegion
@@ -79,7 +85,9 @@ def parse_format_version(version: str) -> tuple[int, int]:
     """``(major, minor)`` of a ``"MAJOR.MINOR"`` string (ValueError if malformed)."""
     match = _VERSION_PATTERN.match(version)
     if match is None:
-        raise ValueError(f"format version {version!r} is not of the form MAJOR.MINOR")
+        raise CellCoaddValueError(
+            f"format version {version!r} is not of the form MAJOR.MINOR", value=version
+        )
     return int(match.group(1)), int(match.group(2))
 
 
@@ -199,9 +207,15 @@ class PatchMetadata(BaseModel):
     def _check_center(cls, center: tuple[float, float]) -> tuple[float, float]:
         ra, dec = center
         if not (math.isfinite(ra) and 0.0 <= ra < 360.0 and math.isfinite(dec)):
-            raise ValueError(f"tract_center ra must be in [0, 360) deg, got {ra}")
+            raise InvalidCoaddError(
+                f"tract_center ra must be in [0, 360) deg, got {ra}", value=ra, allowed=(0.0, 360.0)
+            )
         if not -90.0 <= dec <= 90.0:
-            raise ValueError(f"tract_center dec must be in [-90, 90] deg, got {dec}")
+            raise InvalidCoaddError(
+                f"tract_center dec must be in [-90, 90] deg, got {dec}",
+                value=dec,
+                allowed=(-90.0, 90.0),
+            )
         return center
 
     @field_validator("format_version")
@@ -214,14 +228,18 @@ class PatchMetadata(BaseModel):
     @classmethod
     def _check_no_data(cls, mask_bits: MaskBits) -> MaskBits:
         if "NO_DATA" not in mask_bits.bits:
-            raise ValueError("mask_bits must define NO_DATA (it flags pixels without data)")
+            raise InvalidCoaddError("mask_bits must define NO_DATA (it flags pixels without data)")
         return mask_bits
 
     @model_validator(mode="after")
     def _check_patch(self) -> PatchMetadata:
         n = self.skymap_config.patches_per_tract
         if not all(0 <= p < n for p in self.patch):
-            raise ValueError(f"patch {self.patch} is outside the tract's {n} x {n} patches")
+            raise InvalidCoaddError(
+                f"patch {self.patch} is outside the tract's {n} x {n} patches",
+                value=self.patch,
+                allowed=(0, n),
+            )
         return self
 
     @property
@@ -347,7 +365,10 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
 
     def __init__(self, metadata: PatchMetadata, cells: Mapping[tuple[int, int], CellCoadd]) -> None:
         if not isinstance(metadata, PatchMetadata):
-            raise TypeError(f"metadata must be a PatchMetadata, got {type(metadata).__name__}")
+            raise CellCoaddTypeError(
+                f"metadata must be a PatchMetadata, got {type(metadata).__name__}",
+                allowed=PatchMetadata,
+            )
         self.metadata = metadata
         allowed = set(metadata.all_cell_indices)
         no_data = metadata.mask_bits.value("NO_DATA")
@@ -491,16 +512,26 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             (mask plane).
         """
         if plane not in cell_planes.grid_plane_names():
-            raise ValueError(f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise")
+            raise CellCoaddValueError(
+                f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise",
+                value=plane,
+                allowed=cell_planes.grid_plane_names(),
+            )
         spec = cell_planes.plane(plane)
         if spec.per_realization:
             if noise_index is None or not 0 <= noise_index < self.metadata.n_noise:
-                raise ValueError(
+                raise CellCoaddRangeError(
                     f"plane 'noise' needs noise_index in [0, {self.metadata.n_noise}), "
-                    f"got {noise_index}"
+                    f"got {noise_index}",
+                    value=noise_index,
+                    low=0,
+                    high=self.metadata.n_noise,
                 )
         elif noise_index is not None:
-            raise ValueError(f"noise_index applies to plane 'noise' only, not {plane!r}")
+            raise CellCoaddIncompatibleValuesError(
+                f"noise_index applies to plane 'noise' only, not {plane!r}",
+                values={"plane": plane, "noise_index": noise_index},
+            )
         box = self.patch_inner_bbox
         side = self.metadata.cell_inner
         # no data: the NO_DATA bit in integer (mask) planes, NaN in float ones

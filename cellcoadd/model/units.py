@@ -26,6 +26,8 @@ import math
 import re
 from typing import Any, Literal
 
+from cellcoadd.errors import CellCoaddIncompatibleValuesError, CellCoaddValueError
+
 #: AB magnitude of 1 nJy: ``-2.5 log10(1e-9 / 3631) = 2.5 log10(3631e9) = 31.4`` (31.40006).
 NJY_ZERO_POINT = 2.5 * math.log10(3631.0e9)
 
@@ -83,7 +85,7 @@ def zero_point_of(unit: str, zero_point: float | None) -> float:
     if unit == "nJy":
         return NJY_ZERO_POINT
     if zero_point is None:
-        raise ValueError("counts need a zero point")
+        raise CellCoaddValueError("counts need a zero point")
     return zero_point
 
 
@@ -158,12 +160,13 @@ def check_units(units: str, zero_point: float, zero_point_given: bool) -> None:
         stated zero point.
     """
     if units == "nJy" and zero_point != NJY_ZERO_POINT:
-        raise ValueError(
+        raise CellCoaddIncompatibleValuesError(
             f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
-            f"{zero_point}; use units 'count' for counts at another zero point"
+            f"{zero_point}; use units 'count' for counts at another zero point",
+            values={"units": units, "zero_point": zero_point},
         )
     if units == "count" and not zero_point_given:
-        raise ValueError("units 'count' need a zero_point (mag)")
+        raise CellCoaddValueError("units 'count' need a zero_point (mag)", value=units)
 
 
 def stored_units(

@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from cellcoadd.builder.kernels.descriptor import LANCZOS3
+from cellcoadd.errors import CellCoaddValueError
 
 KERNEL_HALF_WIDTH = LANCZOS3.half_width
 """Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
@@ -144,25 +145,31 @@ def checked_positions_and_taps(
     y_src = np.asarray(y_src)
     for name, values in (("x_src", x_src), ("y_src", y_src)):
         if values.ndim != 2:
-            raise ValueError(f"{name} must be 2-D (ny_out, nx_out), got shape {values.shape}")
+            raise CellCoaddValueError(
+                f"{name} must be 2-D (ny_out, nx_out), got shape {values.shape}", value=values.shape
+            )
         if values.dtype != np.float64:
-            raise ValueError(f"{name} must be float64, got {values.dtype}")
+            raise CellCoaddValueError(
+                f"{name} must be float64, got {values.dtype}", value=values.dtype
+            )
     if x_src.shape != y_src.shape:
-        raise ValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
+        raise CellCoaddValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
     if x_src.size == 0:
         return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (0, 0, 0, 0)
     # min and max propagate NaN and expose infinities: one pass each checks both.
     ranges = [(float(values.min()), float(values.max())) for values in (x_src, y_src)]
     if not all(math.isfinite(bound) for bounds in ranges for bound in bounds):
-        raise ValueError("x_src and y_src must be finite")
+        raise CellCoaddValueError("x_src and y_src must be finite")
     ny_in, nx_in = input_shape
     taps = []
     for axis, (low, high), size in (("x", ranges[0], nx_in), ("y", ranges[1], ny_in)):
         first_tap, stop_tap = LANCZOS3.tap_range(low, high)
         if first_tap < 0 or stop_tap > size:
-            raise ValueError(
+            raise CellCoaddValueError(
                 f"kernel taps along {axis} span input pixels [{first_tap}, {stop_tap - 1}] "
-                f"but the input has pixels [0, {size - 1}]"
+                f"but the input has pixels [0, {size - 1}]",
+                value=(first_tap, stop_tap - 1),
+                allowed=(0, size - 1),
             )
         # the first taps of the lowest and of the highest position
         taps += [first_tap, stop_tap - N_TAPS]

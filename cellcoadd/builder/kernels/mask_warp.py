@@ -12,6 +12,7 @@ import numpy as np
 
 from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.warp import checked_positions_and_taps
+from cellcoadd.errors import CellCoaddValueError
 
 _TAPS = WARP_KERNEL.taps
 _FIRST_OFFSET = WARP_KERNEL.first_offset
@@ -75,7 +76,10 @@ def warp_mask_or(mask: np.ndarray, x_src: np.ndarray, y_src: np.ndarray) -> np.n
     """
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.int32:
-        raise ValueError(f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}")
+        raise CellCoaddValueError(
+            f"mask must be a 2-D int32 array, got {mask.dtype} {mask.shape}",
+            value=(mask.dtype, mask.shape),
+        )
     x_src, y_src, first_taps = checked_positions_and_taps(x_src, y_src, mask.shape)
     out = np.zeros(x_src.shape, dtype=np.int32)
     # Most exposures have no flagged pixel near a cell: nothing to spread then.

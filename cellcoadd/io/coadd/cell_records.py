@@ -8,6 +8,7 @@ from typing import Any
 
 from astropy.wcs import WCS
 
+from cellcoadd.errors import DamagedDataError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -66,15 +67,15 @@ def parse_cell_record(text: str | bytes) -> dict[str, Any]:
 
 def check_cell_geometry(metadata: PatchMetadata, identity: dict[str, Any]) -> None:
     """Refuse a cell identity whose boxes disagree with the sky map's cell geometry
-    (ValueError): the shapes of its planes follow from them, so a forged box could make a
+    (DamagedDataError): the shapes of its planes follow from them, so a forged box could make a
     reader allocate planes of any size."""
     config = metadata.skymap_config
     outer = config.cell_inner + 2 * config.cell_border
     inner_box, outer_box = identity["inner_bbox"], identity["outer_bbox"]
     if inner_box.shape != (config.cell_inner, config.cell_inner):
-        raise ValueError(f"inner box {inner_box} is not {config.cell_inner} pixels square")
+        raise DamagedDataError(f"inner box {inner_box} is not {config.cell_inner} pixels square")
     if outer_box.shape != (outer, outer) or outer_box.grow(-config.cell_border) != inner_box:
-        raise ValueError(
+        raise DamagedDataError(
             f"outer box {outer_box} is not the inner box {inner_box} grown by {config.cell_border}"
         )
 

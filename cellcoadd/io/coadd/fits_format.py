@@ -37,7 +37,7 @@ import fitsio
 import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddOSError, DamagedDataError
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits import direct as fits_direct
 from cellcoadd.io._fits.checksums import (
@@ -200,7 +200,9 @@ def _read_at(stream: BinaryIO, offset: int, size: int) -> bytes:
     while size > 0:
         chunk = stream.read(size)
         if not chunk:
-            raise OSError(f"{getattr(stream, 'name', 'file')}: ends before byte {offset + size}")
+            raise CellCoaddOSError(
+                f"{getattr(stream, 'name', 'file')}: ends before byte {offset + size}"
+            )
         chunks.append(chunk)
         size -= len(chunk)
     return b"".join(chunks)
@@ -410,7 +412,7 @@ class FitsCoaddFile(CoaddFile):
         with reading_errors(path, "reading the metadata"):
             dims = hdu.get_dims()
             if len(dims) != 1 or not 0 < dims[0] <= MAX_METADATA_BYTES:
-                raise ValueError(f"METADATA has dimensions {dims}")
+                raise DamagedDataError(f"METADATA has dimensions {dims}", hdu="METADATA")
             payload = hdu.read().astype(np.uint8, copy=False).tobytes()
             digest = hdu.read_header().get("METASHA")
             if digest != sha256_hex(payload):
@@ -421,7 +423,7 @@ class FitsCoaddFile(CoaddFile):
             table = hdu.read()
             rows = {(int(r["CELL_X"]), int(r["CELL_Y"])): r for r in table}
             if len(rows) != len(table):
-                raise ValueError("the cell index lists a cell twice")
+                raise DamagedDataError("the cell index lists a cell twice")
         return metadata, rows
 
     def _check_last_hdu(self, n_hdu: int, size: int) -> None:
@@ -519,7 +521,7 @@ class FitsCoaddFile(CoaddFile):
         with reading_errors(self.path, f"cell {key} plane {plane}"):
             dims = tuple(hdu.get_dims())
             if dims != shape:
-                raise ValueError(f"dimensions {dims}, expected {shape}")
+                raise DamagedDataError(f"dimensions {dims}, expected {shape}", cell=key)
             header = hdu.read_header()
             as_bits = header.get("CCBITS") == "FLOAT32"  # files before float compression
             data = hdu.read()
@@ -527,7 +529,7 @@ class FitsCoaddFile(CoaddFile):
             expected = spec.dtype
             if as_bits:
                 if data.dtype.kind != "i" or data.itemsize != 4 or spec.compression != "float_bits":
-                    raise ValueError(f"CCBITS on a {data.dtype} {plane} plane")
+                    raise DamagedDataError(f"CCBITS on a {data.dtype} {plane} plane", cell=key)
                 # Native byte order first, then reinterpret the bits.
                 data = data.astype(np.int32, copy=False).view(np.float32)
             elif "CCNFNUM" in header:
@@ -540,7 +542,7 @@ class FitsCoaddFile(CoaddFile):
                     data.astype(np.float32, copy=False), header, self.path, where
                 )
             if (data.dtype.kind, data.itemsize) != (expected.kind, expected.itemsize):
-                raise ValueError(f"dtype {data.dtype}, expected {expected}")
+                raise DamagedDataError(f"dtype {data.dtype}, expected {expected}", cell=key)
             return data
 
     def _read_inputs_hdu(self, key: tuple[int, int], number: int) -> list[InputRecord]:

@@ -46,7 +46,13 @@ import numpy as np
 from astropy import units as u
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, InvalidCoaddError
+from cellcoadd.errors import (
+    CellCoaddFormatError,
+    CellCoaddTypeError,
+    CellCoaddValueError,
+    InvalidCoaddError,
+    MissingDependencyError,
+)
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io.foreign.mask_planes import rubin_description, to_rubin
@@ -104,9 +110,10 @@ def lsst_images_module() -> Any:
         import lsst.images as images
         import lsst.images.cells  # noqa: F401  (attribute of ``images`` from here on)
     except ImportError as err:
-        raise ImportError(
+        raise MissingDependencyError(
             f"converting to or from lsst-images needs the 'lsst-images' package: {EXTRA_HINT}"
-            f" ({err})"
+            f" ({err})",
+            package="lsst.images",
         ) from err
     return images
 
@@ -130,7 +137,9 @@ def export_unit(meta: PatchMetadata) -> tuple[u.UnitBase, float | None]:
     try:
         unit = u.Unit(text, parse_strict="raise")
     except ValueError as err:
-        raise ValueError(f"patch units {text!r} are not an astropy unit: {err}") from None
+        raise CellCoaddValueError(
+            f"patch units {text!r} are not an astropy unit: {err}", value=text
+        ) from None
     if unit == u.ct:
         zero_point = getattr(meta, "zero_point", None)
         if zero_point is None:
@@ -138,7 +147,7 @@ def export_unit(meta: PatchMetadata) -> tuple[u.UnitBase, float | None]:
         return u.ct, float(zero_point)
     if unit == u.nJy:
         return u.nJy, None
-    raise ValueError(
+    raise CellCoaddValueError(
         f"patch units {text!r}: only nJy and counts (with a zero point) are exported to lsst-images"
     )
 
@@ -371,9 +380,15 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
     >>> coadd.write("patch.fits")                  # doctest: +SKIP  (never a .h5 name)
     """
     if not isinstance(patch, PatchCoadd):
-        raise TypeError(f"patch must be a PatchCoadd, got {type(patch).__name__}")
+        raise CellCoaddTypeError(
+            f"patch must be a PatchCoadd, got {type(patch).__name__}", allowed=PatchCoadd
+        )
     if mode not in ("stitched", "per_cell"):
-        raise ValueError(f"mode must be 'stitched' or 'per_cell', got {mode!r}")
+        raise CellCoaddValueError(
+            f"mode must be 'stitched' or 'per_cell', got {mode!r}",
+            value=mode,
+            allowed=("stitched", "per_cell"),
+        )
     images = lsst_images_module()
     if mode == "stitched":
         return _to_stitched(images, patch)
@@ -517,7 +532,7 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
             raise InvalidCoaddError("no lsst-images coadd to convert")
         return _from_per_cell(coadds)
     if not isinstance(obj, images.cells.CellCoadd):
-        raise TypeError(
+        raise CellCoaddTypeError(
             f"expected an lsst.images.cells.CellCoadd, a mapping of them or a path, "
             f"got {type(obj).__name__}"
         )
