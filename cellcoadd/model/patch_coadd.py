@@ -55,7 +55,10 @@ from cellcoadd.model.units import (
 #: 1.1: FITS ``DATACRC`` keywords. 1.2: ``units`` is an astropy unit string (``"nJy"`` or
 #: ``"count"``) and ``zero_point`` a field (older files' free text is mapped on reading),
 #: ``BuildConfig.units``; ``BUNIT``/``MAGZERO``/``MP_*`` keywords and attributes.
-FORMAT_VERSION = "1.2"
+#: 1.3: optional ``observations`` and ``skymap_config.name``/``tangent_pixel`` (Rubin's
+#: sky map); compressed FITS float planes as floats with ``CCNFBITS``; WCS cards on every
+#: FITS pixel-plane HDU.
+FORMAT_VERSION = "1.3"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)
