@@ -325,7 +325,7 @@ def _hdu_starts(path: Path) -> list[int]:
         return [int(hdu.get_offsets()["header_start"]) for hdu in fits]
 
 
-@pytest.mark.parametrize("hdu", [2, 3, 4, 5, 6, 7, 8])
+@pytest.mark.parametrize("hdu", [2, 3, 4, 5, 6, 7, 8, 9])
 def test_cell_coadds_cut_at_an_hdu_boundary_is_refused(tmp_path, cell_coadds_bytes, hdu):
     """Issue 28.3: cut at the start of HDU 5 or 6, the file read as another patch."""
     from cellcoadd.io import api

@@ -7,6 +7,7 @@ import os
 import click
 
 from cellcoadd.geometry import SkyMap, SkyMapConfig
+from cellcoadd.geometry.skymap import LSST_SKYMAPS, SKYMAP_ALIASES
 
 
 def parse_pair(text: str, kind: type = int) -> tuple:
@@ -19,9 +20,14 @@ def parse_pair(text: str, kind: type = int) -> tuple:
 
 
 def load_skymap(path: str | None) -> SkyMap:
-    """A sky map from a ``skymap.json`` file, or the default full-sky rings when None."""
+    """A sky map from a ``skymap.json`` file or a sky map name (``lsst``,
+    ``lsst_cells_v1``, ...: Rubin's ring sky map), or the default full-sky rings when None.
+
+    A name is taken as a name only when no file of that name exists."""
     if path is None:
         return SkyMap.rings()
+    if path in KNOWN_SKYMAP_NAMES and not os.path.exists(path):
+        return SkyMap.named(path)
     from cellcoadd.errors import CellCoaddFormatError
     from cellcoadd.io._files.path_gate import read_bytes
 
@@ -83,11 +89,15 @@ def check_output_not_an_input(out: str, inputs: list[str]) -> None:
             )
 
 
+#: Sky map names ``--skymap`` accepts besides JSON files.
+KNOWN_SKYMAP_NAMES = (*SKYMAP_ALIASES, *LSST_SKYMAPS)
+
 skymap_option = click.option(
     "--skymap",
     "skymap_path",
-    type=click.Path(exists=True, dir_okay=False),
-    help="Sky map JSON file (default: the full-sky ring tessellation).",
+    type=str,
+    help="Sky map JSON file, or a name: lsst (= lsst_cells_v1, Rubin's ring sky map), "
+    "lsst_cells_v2 (default: our own full-sky ring tessellation).",
 )
 
 quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
