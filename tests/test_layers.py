@@ -335,13 +335,26 @@ def _imported_modules(path: Path):
 @pytest.mark.parametrize("path", KERNELS, ids=[p.name for p in KERNELS])
 def test_kernels_do_no_io(path):
     """Numerical kernels: numpy, numba, llvmlite and each other; no files, no astropy."""
-    allowed = ("numpy", "numba", "llvmlite", "math", "collections", "__future__")
+    allowed = ("numpy", "numba", "llvmlite", "math", "collections", "dataclasses", "__future__")
     for module, line in _imported_modules(path):
         top = module.split(".")[0]
         inside = module.startswith("cellcoadd.builder.kernels") or module in (
+            "cellcoadd.errors",  # argument checks raise the library's errors
             "cellcoadd.geometry.box",
         )
         assert top in allowed or inside, f"{path}:{line}: a kernel imports {module}"
+
+
+def test_numba_only_in_kernels():
+    """Every compiled function lives under builder/kernels/: no numba anywhere else."""
+    kernels = PACKAGE / "builder" / "kernels"
+    for path in PACKAGE.rglob("*.py"):
+        if kernels in path.parents:
+            continue
+        for module, line in _imported_modules(path):
+            assert module.split(".")[0] not in ("numba", "llvmlite"), (
+                f"{path}:{line}: imports {module} outside builder/kernels"
+            )
 
 
 @pytest.mark.parametrize("path", SHEAR, ids=[p.name for p in SHEAR])
