@@ -16,7 +16,7 @@ does not grow with their number.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -44,6 +44,7 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
+from cellcoadd.model.mask_presets import fitting_presets
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.sources import (
     DescribedSource,
@@ -70,9 +71,21 @@ def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: Buil
             raise InputError(
                 f"exposure (visit={exposure.visit}, detector={exposure.detector}) does not "
                 f"define the mask bits {missing} named in bad_mask_bits (it defines "
-                f"{sorted(exposure.mask_bits.bits)}); map its bit names, or list them in "
-                "BuildConfig.optional_mask_bits"
+                f"{sorted(exposure.mask_bits.bits)}); {_preset_hint(exposure.mask_bits.bits)}"
+                "map its bit names, or list them in BuildConfig.optional_mask_bits"
             )
+
+
+def _preset_hint(defined: Iterable[str]) -> str:
+    """Advice naming the survey presets whose bits an exposure defines, or ``""``."""
+    names = fitting_presets(defined)
+    if not names:
+        return ""
+    name = names[0]
+    return (
+        f"its bits fit the {name!r} preset: bad_mask_bits = {name!r} in the configuration "
+        f"file or BuildConfig.for_survey({name!r}) (= {name.upper()}_BAD_MASK_BITS); else "
+    )
 
 
 def check_unique_inputs(exposures: Sequence[Exposure | ExposureHeader]) -> None:

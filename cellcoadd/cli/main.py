@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "simulate": ("simulate", "simulate", "Simulate exposures as in the paper (section 3)."),
     "build": ("build", "build", "Coadd exposure files into the cells of one patch."),
     "config": ("config", "config_command", "Print the default build configuration, or check one."),
+    "init": ("init", "init_command", "Write a manifest and configuration for survey files."),
     "info": ("storage", "info_command", "Summarise a stored patch coadd (no pixels read)."),
     "show": ("inspect", "show", "Draw one cell of a coadd file."),
     "trim": ("inspect", "trim", "Add unique-area flags (is_primary, ...) to a catalog."),

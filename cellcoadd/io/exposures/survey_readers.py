@@ -31,6 +31,7 @@ from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
+from cellcoadd.io.exposures.lsst_photocalib import photocalib_zero_point
 from cellcoadd.io.exposures.mef_file import MefFile, open_mef
 from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
 from cellcoadd.model.exposure import Exposure, PsfLike
@@ -319,9 +320,12 @@ class MefExposureFile(ExposureSource):
 
     def _zero_point(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
         for key in self.layout.zero_point_keys:
-            for _, header in searched:
+            for index, header in searched:
                 if key.keyword in header:
-                    value = zero_point_from(key.kind, header[key.keyword])
+                    if key.kind == "photocalib":  # an object in the file's afw archive
+                        value = photocalib_zero_point(headers, key.keyword) if index == 0 else None
+                    else:
+                        value = zero_point_from(key.kind, header[key.keyword])
                     if value is not None:
                         return value
         if self.zero_point is not None:
