@@ -1,7 +1,7 @@
 """The ``cellcoadd`` command group and its error handling.
 
-Errors are reported as one line (``error: ...``) unless ``--debug`` is given, in which
-case the traceback is shown.
+Errors are reported as one line (``error: ...``; usage errors after the command's usage
+line) unless ``--debug`` is given, in which case the traceback is shown.
 """
 
 from __future__ import annotations
@@ -77,8 +77,12 @@ def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else list(argv)
     try:
         cli.main(args=args, prog_name="cellcoadd", standalone_mode=False)
-    except click.UsageError as err:
-        err.show()
+    except click.UsageError as err:  # click's usage lines, then our one error line
+        if err.ctx is not None:
+            click.echo(err.ctx.get_usage(), err=True)
+            help_option = err.ctx.help_option_names[0]
+            click.echo(f"Try '{err.ctx.command_path} {help_option}' for help.", err=True)
+        click.echo(f"error: {one_line(err.format_message())}", err=True)
         sys.exit(err.exit_code)
     except click.ClickException as err:
         click.echo(f"error: {one_line(err.format_message())}", err=True)
