@@ -18,7 +18,7 @@ DEFAULT_N_OBJECTS = 100
 BFD_OVERSAMPLE = 4
 #: default --shear: the paper's g1
 DEFAULT_SHEAR = 0.02
-#: the precision a run aims at: a 3-sigma test of the requirement |m1| < 1e-3
+#: the precision a run aims at: a 3-sigma test of the requirement ``|m1| < 1e-3``
 TARGET_M_ERR = 3e-4
 
 

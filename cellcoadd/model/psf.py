@@ -16,15 +16,15 @@ what the coadd PSF describes.
 pixel response (then it is drawn without adding it again), for the record and the docs;
 the builder never branches on it.
 
-=================  =========================================  ==============  =========
-model              what it holds                              native form     pixel
-=================  =========================================  ==============  =========
-``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject  sky, arcsec  added
-``ImagePsf``       an odd square stamp on the exposure pixels  detector px    included
-``CallablePsf``    a callable (x, y) -> GSObject with a flag   sky, arcsec    flag
-``PsfexPsf``       a PSFEx ``.psf`` file                       detector px    included
-``PiffPsf``        a Piff model file (extra ``cellcoadd[piff]``)  Piff's WCS  included
-=================  =========================================  ==============  =========
+=================  =============================================  ============  =========
+model              what it holds                                  native form   pixel
+=================  =============================================  ============  =========
+``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject   sky, arcsec   added
+``ImagePsf``       an odd square stamp on the exposure pixels     detector px   included
+``CallablePsf``    a callable (x, y) -> GSObject with a flag      sky, arcsec   flag
+``PsfexPsf``       a PSFEx ``.psf`` file                          detector px   included
+``PiffPsf``        a Piff model file (extra ``cellcoadd[piff]``)  Piff's WCS    included
+=================  =============================================  ============  =========
 
 :func:`as_psf_model` turns the forms an :class:`~cellcoadd.model.exposure.Exposure`
 accepts into one of these: a bare GSObject or callable is a ``GalSimPsf`` (the callable

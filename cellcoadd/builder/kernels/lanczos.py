@@ -21,7 +21,7 @@ import numba
 import numpy as np
 
 KERNEL_HALF_WIDTH = 3
-"""Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
+"""Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2`` to ``floor(x) + 3``."""
 
 N_TAPS = 2 * KERNEL_HALF_WIDTH
 _INTEGER_TOLERANCE = 1e-9  # px; closer offsets are taken as exact integers

@@ -31,9 +31,9 @@ PHOTOCALIB_ID_KEY = "PHOTOCALIB_ID"
 def zero_point_from_calibration(calibration_mean: float) -> float | None:
     """The zero point, mag, of ``calibration_mean`` nJy per count; None unless positive.
 
-    >>> zero_point_from_calibration(1.0)  # pixels in nJy
-    31.4
-    >>> round(zero_point_from_calibration(10 ** (-0.4 * (27.0 - 31.4))), 12)
+    >>> zero_point_from_calibration(1.0) == NJY_ZERO_POINT  # pixels in nJy: 31.4
+    True
+    >>> round(zero_point_from_calibration(10 ** (-0.4 * (27.0 - NJY_ZERO_POINT))), 12)
     27.0
     """
     if not (math.isfinite(calibration_mean) and calibration_mean > 0):

@@ -125,8 +125,23 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     point (fixed at ``2.5 log10(3631e9) = 31.4000656...``) is a comment, not a value to
     edit; ``bad_mask_bits`` is the name of ``preset`` when given (its bits in a comment).
 
-    >>> [line for line in build_config_toml(BuildConfig()).splitlines() if "zero_point" in line]
-    ['# zero_point = 31.4 for nJy (fixed: 2.5 log10(3631e9)); give it with units = "count"']
+    >>> print(build_config_toml(BuildConfig.for_survey("lsst"), preset="lsst"))
+    # cellcoadd build configuration (BuildConfig); see docs/inputs.md
+    <BLANKLINE>
+    n_noise = 3
+    psf_size = 35
+    kernel = "lanczos3"
+    max_mask_fraction = 0.1
+    # the 'lsst' preset: ["BAD", "SAT", "CR", "EDGE", "NO_DATA"]
+    bad_mask_bits = "lsst"
+    optional_mask_bits = []
+    # units: output pixel unit: nJy, or count (counts at zero_point)
+    units = "nJy"
+    # zero_point = 31.4 for nJy (fixed: 2.5 log10(3631e9)); give it with units = "count"
+    # mapping_tolerance: pixels
+    mapping_tolerance = 0.001
+    noise_variance = "background"
+    <BLANKLINE>
     """
     lines = ["# cellcoadd build configuration (BuildConfig); see docs/inputs.md", ""]
     for name, field in BuildConfig.model_fields.items():
