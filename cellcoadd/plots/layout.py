@@ -148,7 +148,8 @@ def patch_layout_figure(patch: Patch, *, zoom_cells: int = 3) -> Any:
         f"cells: inner {cfg.cell_inner} px, border {cfg.cell_border} px "
         f"(outer {cfg.cell_inner + 2 * cfg.cell_border} px); {cfg.cells_per_patch} x "
         f"{cfg.cells_per_patch} inner cells per patch, {cfg.patch_border_cells} border "
-        f'cell(s) on each side; {cfg.pixel_scale:g}"/pixel'
+        f"cell{'s' if cfg.patch_border_cells != 1 else ''} on each side; "
+        f'{cfg.pixel_scale:g}"/pixel'
     )
     return fig
 
