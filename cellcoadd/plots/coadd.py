@@ -25,8 +25,13 @@ from cellcoadd.plots import style
 def unit_label(units: str | None, zero_point: float | None = None) -> str:
     """Colourbar label of the image plane from the metadata's ``units``.
 
-    ``"count"`` -> ``"counts / pixel (zero point 30)"``, ``"nJy"`` -> ``"nJy / pixel"``;
+    ``"count"`` -> ``"counts / pixel (AB zero point 30)"``, ``"nJy"`` -> ``"nJy / pixel"``;
     other (older, free-text) units are shown as they are.
+
+    Examples
+    --------
+    >>> unit_label("nJy"), unit_label("count", 30.0)
+    ('nJy / pixel', 'counts / pixel (AB zero point 30)')
     """
     if not units:
         return "pixel value"

@@ -72,7 +72,17 @@ class ZeroPointKey(BaseModel):
 
 def zero_point_from(kind: ZeroPointKind, value: object) -> float | None:
     """The zero point a header value gives, or None when it gives none (always for
-    ``"photocalib"``, which needs the file)."""
+    ``"photocalib"``, which needs the file).
+
+    Examples
+    --------
+    >>> zero_point_from("mag", 30.25)  # MAGZERO
+    30.25
+    >>> round(zero_point_from("fluxmag0", 10 ** (0.4 * 28.7)), 9)  # FLUXMAG0
+    28.7
+    >>> zero_point_from("bunit", "nJy") == NJY_ZERO_POINT, zero_point_from("bunit", "adu")
+    (True, None)
+    """
     if kind == "photocalib":
         return None
     if kind == "bunit":
