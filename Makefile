@@ -73,10 +73,7 @@ docs: $(VENV)/.installed-docs
 
 # where there is network: the intersphinx inventories of numpy, astropy, GalSim, dask, ...
 docs-inventories:
-	mkdir -p docs/_inventories
-	$(PY) -c "import sys; sys.path.insert(0, 'docs'); import conf, urllib.request; \
-	[urllib.request.urlretrieve(url + 'objects.inv', f'docs/_inventories/{name}.inv') \
-	 for name, url in conf.INTERSPHINX.items()]"
+	$(PY) -c "import sys; sys.path.insert(0, 'docs'); import conf; conf.fetch_inventories()"
 
 clean:
 	rm -rf $(VENV) $(LSST_VENV) $(DEMO_OUT) .pytest_cache .mypy_cache docs/_build docs/api

@@ -87,6 +87,26 @@ def _mapping() -> dict[str, tuple[str, str | None]]:
     return mapping
 
 
+def fetch_inventories() -> None:
+    """Download the inventories into ``docs/_inventories`` (``make docs-inventories``);
+    a project that cannot be reached is skipped, with a message."""
+    import urllib.request
+
+    INVENTORIES.mkdir(exist_ok=True)
+    for name, url in INTERSPHINX.items():
+        try:
+            with urllib.request.urlopen(url + "objects.inv", timeout=30) as response:
+                data = response.read()
+        except OSError as err:
+            print(f"{name}: not fetched ({err})")
+            continue
+        if not data.startswith(b"# Sphinx inventory"):
+            print(f"{name}: {url}objects.inv is not a Sphinx inventory, skipped")
+            continue
+        (INVENTORIES / f"{name}.inv").write_bytes(data)
+        print(f"{name}: {len(data)} bytes")
+
+
 intersphinx_mapping = _mapping()
 intersphinx_timeout = 10
 
