@@ -60,7 +60,28 @@ autodoc_member_order = "bysource"
 autoclass_content = "class"
 numpydoc_show_class_members = False  # autosummary lists members; no duplicate stubs
 numpydoc_class_members_toctree = False
-numpydoc_xref_param_type = False
+# parameter types name numpy, astropy, GalSim and dask classes: linked through intersphinx
+# when its inventory is there (only the aliased names; other words stay plain text)
+numpydoc_xref_param_type = True
+numpydoc_xref_ignore = "all"
+numpydoc_xref_aliases = {
+    # numpydoc's defaults for these are :ref: and :term: roles, which warn (errors here)
+    # when their project's inventory is absent; class roles fall back to plain text
+    "bool": ":class:`python:bool`",
+    "boolean": ":class:`python:bool`",
+    "array_like": ":class:`numpy.typing.ArrayLike`",
+    "array-like": ":class:`numpy.typing.ArrayLike`",
+    "scalar": ":class:`numpy.generic`",
+    "iterable": ":class:`python:collections.abc.Iterable`",
+    "sequence": ":class:`python:collections.abc.Sequence`",
+    "generator": ":class:`python:collections.abc.Generator`",
+    "ndarray": "numpy.ndarray",
+    "WCS": "astropy.wcs.WCS",
+    "Header": "astropy.io.fits.Header",
+    "GSObject": "galsim.GSObject",
+    "Executor": "concurrent.futures.Executor",
+    "Client": "distributed.Client",
+}
 add_module_names = False
 
 # -- intersphinx, offline first ---------------------------------------------------------------
