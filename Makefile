@@ -6,7 +6,7 @@ DEMO_OUT ?= demo-output
 LSST_VENV ?= .venv-lsst
 LSST_PY := $(LSST_VENV)/bin/python
 
-.PHONY: demo test test-all test-lsst bench lint schemas docs docs-inventories clean
+.PHONY: demo test test-lsst bench lint schemas clean
 
 $(VENV)/.installed-base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -31,11 +31,6 @@ demo: $(VENV)/.installed-base
 
 test: $(VENV)/.installed-test
 	$(PY) -m pytest
-	@$(MAKE) --no-print-directory test-lsst
-
-# the slow tests too (the default run leaves out -m slow)
-test-all: $(VENV)/.installed-test
-	$(PY) -m pytest -m ""
 	@$(MAKE) --no-print-directory test-lsst
 
 # tests/test_lsst_images.py in $(LSST_VENV), made with the newest pyenv 3.12 (else a plain
@@ -63,6 +58,8 @@ lint: $(VENV)/.installed-test
 
 schemas: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd schemas --out schemas/
+
+.PHONY: docs docs-inventories
 
 # HTML of docs/ (the Markdown pages and the API reference) in docs/_build/html; warnings are
 # errors. No network needed: intersphinx links only to the projects whose inventory is in
