@@ -15,6 +15,7 @@ Build with ``make docs`` (warnings are errors). The build needs no network:
 from __future__ import annotations
 
 import os
+import re
 import sys
 import types
 import typing
@@ -145,8 +146,20 @@ def _skip_type_alias(app: Any, what: str, name: str, obj: Any, skip: bool, optio
     return None
 
 
+#: a Markdown link to a Markdown file outside docs/ (``[README](../README.md)``)
+OUTSIDE_MD_LINK = re.compile(r"\]\((\.\./[^)#\s]+\.md)(#[^)\s]*)?\)")
+
+
+def _outside_links(app: Any, docname: str, source: list[str]) -> None:
+    """Links from a page to Markdown files outside docs/ (the README, ...), which MyST
+    would look for among the pages: made links to the file itself (``path:``, copied to
+    the build as a download), as for any other file of the repository."""
+    source[0] = OUTSIDE_MD_LINK.sub(r"](path:\1)", source[0])
+
+
 def setup(app: Any) -> None:
     app.connect("autodoc-skip-member", _skip_type_alias)
+    app.connect("source-read", _outside_links)
 
 
 # -- HTML ---------------------------------------------------------------------------------------

@@ -46,3 +46,10 @@ def test_type_links_never_warn_offline(monkeypatch):
     conf = _conf(monkeypatch, online=False)
     merged = {**xref.DEFAULT_LINKS, **conf.numpydoc_xref_aliases}
     assert [k for k, v in merged.items() if v.startswith((":ref:", ":term:"))] == []
+
+
+def test_links_to_markdown_outside_docs_become_file_links(monkeypatch):
+    conf = _conf(monkeypatch, online=False)
+    source = ["[README](../README.md), [part](../README.md#testing), [page](inputs.md#units)"]
+    conf._outside_links(None, "architecture", source)
+    assert source == ["[README](path:../README.md), [part](path:../README.md), [page](inputs.md#units)"]
