@@ -52,4 +52,5 @@ def test_links_to_markdown_outside_docs_become_file_links(monkeypatch):
     conf = _conf(monkeypatch, online=False)
     source = ["[README](../README.md), [part](../README.md#testing), [page](inputs.md#units)"]
     conf._outside_links(None, "architecture", source)
-    assert source == ["[README](path:../README.md), [part](path:../README.md), [page](inputs.md#units)"]
+    expected = "[README](path:../README.md), [part](path:../README.md), [page](inputs.md#units)"
+    assert source == [expected]
