@@ -30,7 +30,7 @@ from test_survey_readers import (
 )
 
 from cellcoadd import BuildConfig
-from cellcoadd.builder.cell import check_mask_bits
+from cellcoadd.builder.inputs import check_mask_bits
 from cellcoadd.cli.main import cli
 from cellcoadd.errors import CellCoaddFormatError, ConfigError, InputError
 from cellcoadd.io import (

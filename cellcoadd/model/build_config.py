@@ -147,5 +147,7 @@ class BuildConfig(BaseModel):
     @classmethod
     def _odd(cls, size: int) -> int:
         if size % 2 == 0:
-            raise ValueError(f"psf_size must be odd so the stamp has a central pixel, got {size}")
+            raise ConfigError(
+                f"psf_size must be odd so the stamp has a central pixel, got {size}", value=size
+            )
         return size

@@ -32,6 +32,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ShearError
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
@@ -171,11 +172,12 @@ def run_pairs(
         Ordered by object index, identical whatever the executor and chunking.
     """
     if n_objects < 1 or first_index < 0:
-        raise ValueError(
-            f"need n_objects >= 1 and first_index >= 0, got {n_objects}, {first_index}"
+        raise CellCoaddValueError(
+            f"need n_objects >= 1 and first_index >= 0, got {n_objects}, {first_index}",
+            value=(n_objects, first_index),
         )
     if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise CellCoaddRangeError(f"workers must be >= 1, got {workers}", value=workers, low=1)
     pool, release = resolve_executor(executor, workers, scheduler)
     if chunk_size is None:
         # several chunks per worker keep the pool busy and the progress bar moving
@@ -207,7 +209,9 @@ def run_pairs(
 def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
     """Biases and diagnostics of a catalogue of pairs (the result of :func:`validate_shear`)."""
     if len(catalogue) < 2:
-        raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
+        raise ShearError(
+            f"a bias needs at least 2 pairs, got {len(catalogue)}", value=len(catalogue)
+        )
     if settings.method == "bfd":
         return summarize_bfd(settings, catalogue, _group(settings, catalogue))
     if settings.method == "anacal":
@@ -358,7 +362,9 @@ def validate_shear(
         ``"dilate"`` reconvolution PSF in multi-epoch metacal).
     """
     if n_objects < 2:
-        raise ValueError(f"a bias needs at least 2 objects, got n_objects = {n_objects}")
+        raise CellCoaddRangeError(
+            f"a bias needs at least 2 objects, got n_objects = {n_objects}", value=n_objects, low=2
+        )
     check_method_mode(method, mode, reconvolution_psf)
     sim = sim or SimConfig()
     if shear is not None:

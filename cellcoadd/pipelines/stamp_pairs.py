@@ -60,6 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcoadd.builder import build_cell
+from cellcoadd.errors import BfdError, CellCoaddValueError
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.pipelines.epoch_measurements import (
@@ -281,7 +282,7 @@ def bfd_templates(
     seed = template_seed(settings)
     if settings.bfd_template_sample == "targets":
         if indices is None:
-            raise ValueError("templates from the targets need the targets' indices")
+            raise CellCoaddValueError("templates from the targets need the targets' indices")
         objects = [_unsheared_target(settings, int(i)) for i in indices]
     else:
         objects = [_template_object(settings, j) for j in range(settings.bfd_templates)]
@@ -320,7 +321,7 @@ def bfd_templates(
         if bfd.measure_moments(data).converged:
             out.append(data)
     if not out:
-        raise ValueError("no usable BFD template")
+        raise BfdError("no usable BFD template")
     return out
 
 

@@ -28,12 +28,12 @@ Conventions (PSF includes the pixel; jacobian in arcsec/pixel, GalSim ``u`` West
 
 from __future__ import annotations
 
+from cellcoadd.errors import BfdError
 from cellcoadd.shear.bfd_epochs import combine_epochs, sum_epochs
 from cellcoadd.shear.bfd_moments import (
     DEFAULT_OVERSAMPLE,
     EVEN_NAMES,
     ODD_NAMES,
-    BfdError,
     KData,
     KSigmaWeight,
     Moments,

@@ -16,7 +16,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cellcoadd.shear.bfd_moments import BfdError, KData
+from cellcoadd.errors import BfdError
+from cellcoadd.shear.bfd_moments import KData
 
 __all__ = ["combine_epochs", "sum_epochs"]
 

@@ -39,13 +39,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError
+from cellcoadd.errors import BfdError
 
 __all__ = [
     "DEFAULT_OVERSAMPLE",
     "EVEN_NAMES",
     "ODD_NAMES",
-    "BfdError",
     "KData",
     "KSigmaWeight",
     "Moments",
@@ -66,10 +65,6 @@ ODD_NAMES: tuple[str, ...] = ("X", "Y")
 #: (8-fold) one, to 7e-6 in m1 against 1e-4 for 3-fold and 0.03 for none
 #: (docs/validation.md, "k sampling"); it costs ~16 times the unpadded transform.
 DEFAULT_OVERSAMPLE = 4
-
-
-class BfdError(CellCoaddError, ValueError):
-    """BFD moments or shear cannot be computed from the given inputs."""
 
 
 @dataclass(frozen=True)

@@ -41,8 +41,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cellcoadd.errors import BfdError
 from cellcoadd.shear.bfd_moments import (
-    BfdError,
     KData,
     Moments,
     centroid_jacobian,
