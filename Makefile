@@ -24,6 +24,12 @@ $(VENV)/.installed-test: pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $@ $(VENV)/.installed-base
 
+$(VENV)/.installed-docs: pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[docs]"
+	touch $@
+
 demo: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd demo --out $(DEMO_OUT) --overwrite
 
@@ -64,5 +70,18 @@ lint: $(VENV)/.installed-test
 schemas: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd schemas --out schemas/
 
+.PHONY: docs docs-inventories
+
+# HTML of docs/ (the Markdown pages and the API reference) in docs/_build/html; warnings are
+# errors. No network needed: intersphinx links only to the projects whose inventory is in
+# docs/_inventories/ (see docs/conf.py and `make docs-inventories`)
+docs: $(VENV)/.installed-docs
+	rm -rf docs/api
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html -d docs/_build/doctrees docs docs/_build/html
+
+# where there is network: the intersphinx inventories of numpy, astropy, GalSim, dask, ...
+docs-inventories:
+	$(PY) -c "import sys; sys.path.insert(0, 'docs'); import conf; conf.fetch_inventories()"
+
 clean:
-	rm -rf $(VENV) $(LSST_VENV) $(DEMO_OUT) .pytest_cache .mypy_cache
+	rm -rf $(VENV) $(LSST_VENV) $(DEMO_OUT) .pytest_cache .mypy_cache docs/_build docs/api

@@ -184,7 +184,21 @@ __all__ = [
 ]
 
 
-__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
+#: sub-packages reachable as attributes after ``import cellcoadd`` (``cellcoadd.io``)
+_SUBPACKAGES = (
+    "analysis",
+    "builder",
+    "errors",
+    "geometry",
+    "io",
+    "model",
+    "pipelines",
+    "plots",
+    "shear",
+    "sim",
+)
+
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS, _SUBPACKAGES)
 
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs

@@ -105,8 +105,10 @@ def locate(ra: float, dec: float, skymap_path: str | None, as_json: bool) -> Non
       cellcoadd locate 150.3 2.0 --skymap skymap.json --json
       cellcoadd locate 53.16 -28.1 --skymap lsst
     """
-    if not (-90.0 <= dec <= 90.0 and np.isfinite(ra)):
-        raise click.BadParameter(f"({ra}, {dec}) is not a sky position in deg")
+    if not 0.0 <= ra <= 360.0:  # NaN fails both checks too
+        raise click.BadParameter(f"{ra} is outside [0, 360] deg", param_hint="RA")
+    if not -90.0 <= dec <= 90.0:
+        raise click.BadParameter(f"{dec} is outside [-90, 90] deg", param_hint="DEC")
     the_map = load_skymap(skymap_path)
     where = the_map.locate(np.array([ra]), np.array([dec]))[0]
     result = {name: where[name].item() for name in where.dtype.names}

@@ -12,6 +12,7 @@ from cellcoadd.io.exposures.manifest_io import (
 from cellcoadd.io.exposures.mef_layout import (
     DES_BAD_MASK_BITS,
     DES_LAYOUT,
+    DES_MASK_VALUES,
     LSST_BAD_MASK_BITS,
     LSST_LAYOUT,
     MefLayout,
@@ -29,6 +30,7 @@ __all__ = [
     "CellCoaddFormatError",
     "DES_BAD_MASK_BITS",
     "DES_LAYOUT",
+    "DES_MASK_VALUES",
     "ExposureFile",
     "LSST_BAD_MASK_BITS",
     "LSST_LAYOUT",

@@ -16,15 +16,15 @@ what the coadd PSF describes.
 pixel response (then it is drawn without adding it again), for the record and the docs;
 the builder never branches on it.
 
-=================  =========================================  ==============  =========
-model              what it holds                              native form     pixel
-=================  =========================================  ==============  =========
-``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject  sky, arcsec  added
-``ImagePsf``       an odd square stamp on the exposure pixels  detector px    included
-``CallablePsf``    a callable (x, y) -> GSObject with a flag   sky, arcsec    flag
-``PsfexPsf``       a parsed PSFEx model (:class:`PsfexData`)   detector px    included
-``PiffPsf``        a loaded Piff model (extra ``cellcoadd[piff]``)  Piff's WCS  included
-=================  =========================================  ==============  =========
+=================  =============================================  ============  =========
+model              what it holds                                  native form   pixel
+=================  =============================================  ============  =========
+``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject   sky, arcsec   added
+``ImagePsf``       an odd square stamp on the exposure pixels     detector px   included
+``CallablePsf``    a callable (x, y) -> GSObject with a flag      sky, arcsec   flag
+``PsfexPsf``       a parsed PSFEx model (:class:`PsfexData`)      detector px   included
+``PiffPsf``        a loaded Piff model (``cellcoadd[piff]``)      Piff's WCS    included
+=================  =============================================  ============  =========
 
 The model classes never read files (``model`` knows nothing of files): PSFEx and Piff
 files are read, recognised by content and parsed whole by :mod:`cellcoadd.io`

@@ -68,7 +68,7 @@ def summary_fields(
     }
 
 
-#: Requirement on |m| of ambitious surveys quoted by the paper.
+#: Requirement on ``|m|`` of ambitious surveys quoted by the paper.
 M_REQUIREMENT = 1.0e-3
 
 

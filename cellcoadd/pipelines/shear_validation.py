@@ -86,7 +86,7 @@ def run_pairs(
     chunk_size: int | None = None,
     progress: bool = True,
 ) -> PairCatalogue:
-    """Measure objects ``first_index .. first_index + n_objects - 1``.
+    """Measure objects ``first_index`` to ``first_index + n_objects - 1``.
 
     Arguments are those of :func:`validate_shear`; ``first_index`` lets a long run be
     split into index ranges whose catalogues :meth:`PairCatalogue.concatenate` joins.

@@ -29,7 +29,9 @@ from cellcoadd.io._files.path_gate import read_bytes
 from cellcoadd.io.exposures.psf_files import read_psf_file
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.manifest import Manifest, ManifestEntry
+from cellcoadd.model.mask_presets import MASK_PRESETS
 from cellcoadd.model.sources import ExposureSource
+from cellcoadd.model.units import is_njy_zero_point
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -163,14 +165,48 @@ def read_build_config(path: str | os.PathLike[str]) -> BuildConfig:
         raise ConfigError(f"{path}: invalid build configuration: {_one_line(err)}") from None
 
 
-def build_config_toml(config: BuildConfig) -> str:
+def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     """``config`` as a commented TOML file to start from (what ``cellcoadd config --show``
-    prints)."""
+    prints).
+
+    Values are printed as a person would give them: with ``units = "nJy"`` the zero
+    point (fixed at ``2.5 log10(3631e9) = 31.4000656...``) is a comment, not a value to
+    edit; ``bad_mask_bits`` is the name of ``preset`` when given (its bits in a comment).
+
+    >>> print(build_config_toml(BuildConfig.for_survey("lsst"), preset="lsst"))
+    # cellcoadd build configuration (BuildConfig); see docs/inputs.md
+    <BLANKLINE>
+    n_noise = 3
+    psf_size = 35
+    kernel = "lanczos3"
+    max_mask_fraction = 0.1
+    # the 'lsst' preset: ["BAD", "SAT", "CR", "EDGE", "NO_DATA"]
+    bad_mask_bits = "lsst"
+    optional_mask_bits = []
+    # units: output pixel unit: nJy, or count (counts at zero_point)
+    units = "nJy"
+    # zero_point = 31.4 for nJy (fixed: 2.5 log10(3631e9)); give it with units = "count"
+    # mapping_tolerance: pixels
+    mapping_tolerance = 0.001
+    noise_variance = "background"
+    <BLANKLINE>
+    """
     lines = ["# cellcoadd build configuration (BuildConfig); see docs/inputs.md", ""]
     for name, field in BuildConfig.model_fields.items():
         value = getattr(config, name)
-        if field.description:
+        if field.description and not (name == "zero_point" and config.units == "nJy"):
             lines.append(f"# {name}: {field.description}")
+        if name == "bad_mask_bits" and preset is not None:
+            if MASK_PRESETS[preset] != value:
+                raise ConfigError(f"bad_mask_bits {list(value)} are not the {preset!r} preset")
+            lines.append(f"# the {preset!r} preset: {json.dumps(list(value))}")
+            lines.append(f"{name} = {json.dumps(preset)}")
+            continue
+        if name == "zero_point" and config.units == "nJy" and is_njy_zero_point(value):
+            lines.append(
+                f'# {name} = 31.4 for nJy (fixed: 2.5 log10(3631e9)); give it with units = "count"'
+            )
+            continue
         lines.append(f"{name} = {json.dumps(list(value) if isinstance(value, tuple) else value)}")
     return "\n".join(lines) + "\n"
 

@@ -32,6 +32,7 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._files.read_checks import is_file_failure
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
+from cellcoadd.io.exposures.lsst_photocalib import photocalib_zero_point
 from cellcoadd.io.exposures.mef_file import MefFile, open_mef
 from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
 from cellcoadd.io.exposures.psf_files import read_psf_file
@@ -347,10 +348,15 @@ class MefExposureFile(ExposureSource):
             for index, header in searched:
                 if key.keyword in header:
                     raw = header[key.keyword]
-                    value = zero_point_from(key.kind, raw)
+                    if key.kind == "photocalib":  # an object in the file's afw archive
+                        value = photocalib_zero_point(headers, key.keyword) if index == 0 else None
+                    else:
+                        value = zero_point_from(key.kind, raw)
                     if value is not None:
                         return value
-                    if key.kind != "bunit":  # BUNIT may name another unit: no zero point
+                    # BUNIT may name another unit, and only the primary header's PhotoCalib
+                    # reference is read: no zero point from these, and no error
+                    if key.kind not in ("bunit", "photocalib"):
                         # present but unusable: never fall back to zero_point= silently
                         raise headers.fail(
                             index,

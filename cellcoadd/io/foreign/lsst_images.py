@@ -378,7 +378,7 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
     Examples
     --------
     >>> coadd = to_lsst_images(patch)              # doctest: +SKIP
-    >>> coadd.write("patch.fits")                  # doctest: +SKIP  (never a .h5 name)
+    >>> coadd.write("patch.fits")  # never a .h5 name  # doctest: +SKIP
     """
     if not isinstance(patch, PatchCoadd):
         raise CellCoaddTypeError(
