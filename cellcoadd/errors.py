@@ -12,6 +12,8 @@
     ├── BuildError             a build cannot proceed
     │   ├── CellBuildError     one cell failed (names the cell, carries the traceback)
     │   └── MappingError       a pixel mapping cannot be computed within tolerance
+    ├── TractRunError          patches of a tract run failed, or its output directory is busy
+    │   └── RunLockedError     ... another run holds the output directory (names the holder)
     ├── EmptyCellError         a measurement was asked of a cell without inputs
     └── MetacalError           metacalibration cannot run on the given images
 
@@ -70,6 +72,14 @@ class CellBuildError(BuildError, RuntimeError):
 
 class MappingError(BuildError, ValueError):
     """The cell -> exposure pixel mapping cannot be computed within the tolerance."""
+
+
+class TractRunError(CellCoaddError):
+    """A tract run could not build every patch (names the failed patches and why)."""
+
+
+class RunLockedError(TractRunError):
+    """Another run holds the output directory's lock (names the directory and the holder)."""
 
 
 class EmptyCellError(CellCoaddError, ValueError):
