@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "locate": ("geometry", "locate", "Print the tract, patch and cell holding sky positions."),
     "simulate": ("simulate", "simulate", "Simulate exposures as in the paper (section 3)."),
     "build": ("build", "build", "Coadd exposure files into the cells of one patch."),
+    "index": ("index", "index_command", "Store the headers of input files in an exposure index."),
+    "run": ("run", "run_command", "Build the patches of a tract on dask; resumable."),
     "config": ("config", "config_command", "Print the default build configuration, or check one."),
     "info": ("storage", "info_command", "Summarise a stored patch coadd (no pixels read)."),
     "show": ("inspect", "show", "Draw one cell of a coadd file."),
