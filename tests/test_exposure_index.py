@@ -77,7 +77,7 @@ def test_update_adds_changes_and_reports_vanished_and_bad_files(tmp_path):
         first = index.update(_entries(paths), workers=2)
         assert sorted(first.added) == sorted(os.path.abspath(p) for p in paths)
         again = index.update(_entries(paths))
-        assert len(again.unchanged) == 4 and not again.added and not again.updated
+        assert len(again.unchanged) == 9 and not again.added and not again.updated
         # add two visits, rewrite one file, delete another, add a damaged one
         more = write_field(tmp_path / "a", n_visits=1, start_visit=1)
         changed = paths[2]  # same name, new bytes
@@ -94,8 +94,8 @@ def test_update_adds_changes_and_reports_vanished_and_bad_files(tmp_path):
         assert [p for p, _ in update.bad] == [os.path.abspath(bad)]
         assert "broken.fits" in update.bad[0][0] and update.bad[0][1]
         stats = index.stats()
-        assert stats["ok"] == 7 and stats["bad"] == 1 and stats["vanished"] == 1
-        assert stats["visits"] == 3 and stats["bands"]["r"]["files"] == 7
+        assert stats["ok"] == 17 and stats["bad"] == 1 and stats["vanished"] == 1
+        assert stats["visits"] == 3 and stats["bands"]["r"]["files"] == 17
         listed = dict(index.bad_files())
         assert os.path.abspath(bad) in listed and os.path.abspath(paths[3]) in listed
         everything = index.query(_patch_corners(skymap()[0].patch(0, 0)))
@@ -184,7 +184,7 @@ def test_index_command_updates_and_summarises(tmp_path):
     bad.write_bytes(b"")
     result = runner.invoke(cli, ["index", *map(str, paths), str(bad), "--db", db, "-q"])
     assert result.exit_code == 0, result.output
-    assert "4 added" in result.output and "1 bad" in result.output and "empty.fits" in result.output
+    assert "9 added" in result.output and "1 bad" in result.output and "empty.fits" in result.output
     result = runner.invoke(cli, ["index", "--db", db, "--stats"])
     assert result.exit_code == 0, result.output
-    assert "5 files (4 usable, 1 bad" in result.output and "band r: 4 files" in result.output
+    assert "10 files (9 usable, 1 bad" in result.output and "band r: 9 files" in result.output
