@@ -39,18 +39,19 @@ def index_command(
     as_json: bool,
     quiet: bool,
 ) -> None:
-    """Read the headers of input files once and store them in an exposure index.
+    """Index input files: read their headers once into SQLite, for `cellcoadd run`.
 
     Each input's identity, band, zero point, exact WCS, valid box, sky footprint (with
     HEALPix pixels for the queries), PSF model file and the size and mtime of its files
     go into one SQLite row. Running it again adds new files, re-reads changed ones and
     reports files that vanished. Files that cannot be read are stored with the reason
-    and listed. `cellcoadd run --index` builds patches from it.
+    and listed. Survey files (LSST, DES, other layouts) come with their PSF model files
+    in a --manifest. `cellcoadd run --index` builds patches from it.
 
     \b
     Examples:
       cellcoadd index sim/visit*-det*.fits --db inputs.sqlite --workers 2
-      cellcoadd index --manifest des.toml --db inputs.sqlite --checksum
+      cellcoadd index sim/visit*-det*.fits --db inputs.sqlite --checksum
       cellcoadd index --db inputs.sqlite --stats
     """
     from tqdm.auto import tqdm

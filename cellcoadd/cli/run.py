@@ -27,7 +27,13 @@ from cellcoadd.cli.options import load_skymap, parse_pair, quiet_option, skymap_
 )  # fmt: skip
 @click.option("--band", help="Band to build (needed when the tract has several).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise realization seed.")
-@click.option("--workers", type=int, default=1, show_default=True, help="Local dask workers.")
+@click.option(
+    "--workers",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Local dask worker processes (1: here).",
+)
 @click.option("--scheduler", help="dask.distributed scheduler address (instead of --workers).")
 @click.option("--format", "fmt", type=click.Choice(["fits", "h5"]), default="fits")
 @click.option("--retries", type=int, default=2, show_default=True, help="Retries per patch.")
@@ -65,10 +71,10 @@ def run_command(
     \b
     Examples:
       cellcoadd index sim/visit*-det*.fits --db inputs.sqlite
-      cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --tract 0 --out-dir run \\
-          --workers 2
       cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --tract 0 --patch 0,0 \\
-          --out-dir run --format h5 --scheduler tcp://127.0.0.1:8786
+          --out-dir run --workers 2
+      cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --tract 0 --out-dir run-h5 \\
+          --format h5 --scheduler tcp://127.0.0.1:8786
     """
     from cellcoadd.errors import TractRunError
     from cellcoadd.io.exposures.manifest_io import read_build_config
