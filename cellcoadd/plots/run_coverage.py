@@ -83,9 +83,14 @@ def plot_tract_coverage(
                           edgecolor="tab:red", hatch="//", lw=1.5)
             )  # fmt: skip
         ax.text(
-            x0 + side / 2, y0 + side / 2, f"{px},{py}", ha="center", va="center",
-            fontsize="small", color="white", alpha=0.8,
+            x0 + side / 2, y0 + side / 2, f"patch {px},{py}", ha="center", va="center",
+            fontsize="small", color="black",
+            bbox={"facecolor": "white", "alpha": 0.6, "edgecolor": "none", "pad": 1.5},
         )  # fmt: skip
+    if n_cells <= 120:  # cell boundaries, faint
+        for k in range(n_cells + 1):
+            ax.axvline(k * size - 0.5, color="white", lw=0.3, alpha=0.5)
+            ax.axhline(k * size - 0.5, color="white", lw=0.3, alpha=0.5)
     for k in range(cfg.patches_per_tract + 1):
         edge = k * side - 0.5
         ax.axvline(edge, color="black", lw=1.0)

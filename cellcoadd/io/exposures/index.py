@@ -463,7 +463,7 @@ class ExposureIndex:
                     result.updated.append(path)
                 else:
                     result.added.append(path)
-                self._store(item)
+                self.store(item)
             for path, (status, files, _) in known.items():
                 if path not in seen and status != "vanished" and not _exists(files):
                     self._db.execute(
@@ -495,8 +495,9 @@ class ExposureIndex:
             results = pool.map(describe_entry, entries, [checksum] * len(entries), chunksize=chunk)
             yield from wrap(results, len(entries))
 
-    def _store(self, item: Described) -> None:
-        """Insert or replace the row of ``item`` and its footprint pixels (in a transaction)."""
+    def store(self, item: Described) -> None:
+        """Insert or replace the row of ``item`` and its footprint pixels; the caller
+        commits (:meth:`commit`, or a ``with`` block on the connection)."""
         entry = item.entry
         first = item.files[0] if item.files else FileStamp(entry.path, -1, -1)
         layout = entry.layout if isinstance(entry.layout, str) else "custom"
@@ -546,7 +547,7 @@ class ExposureIndex:
     def put(self, entry: ManifestEntry, header: ExposureHeader, files: Sequence[FileStamp]) -> None:
         """Store an input described elsewhere (e.g. synthetic rows for a benchmark); the
         caller commits through :meth:`commit`."""
-        self._store(
+        self.store(
             Described(entry, tuple(files), header_to_json(header), footprint_corners(header))
         )
 
@@ -559,21 +560,30 @@ class ExposureIndex:
         """The usable inputs whose footprint may overlap the convex polygon ``corners``
         (``(n, 2)`` RA/Dec, deg), of ``band`` if given, ordered by (visit, detector)."""
         pixels = polygon_pixels(self.nside, np.asarray(corners, dtype=float))
-        if len(pixels) == 0:
-            return []
-        self._db.execute("CREATE TEMP TABLE IF NOT EXISTS wanted (pixel INTEGER PRIMARY KEY)")
-        self._db.execute("DELETE FROM wanted")
-        self._db.executemany("INSERT INTO wanted VALUES (?)", ((int(p),) for p in pixels))
-        sql = (
-            f"SELECT {_COLUMNS} FROM exposures WHERE status = 'ok' AND id IN "
-            "(SELECT DISTINCT exposure FROM footprint JOIN wanted USING (pixel))"
-        )
-        params: tuple[Any, ...] = ()
-        if band is not None:
-            sql += " AND band = ?"
-            params = (band,)
-        rows = self._db.execute(sql + " ORDER BY visit, detector, path", params).fetchall()
-        return [_indexed(row) for row in rows]
+        ids: set[int] = set()
+        for start in range(0, len(pixels), _CHUNK):
+            part = [int(p) for p in pixels[start : start + _CHUNK]]
+            marks = ", ".join("?" for _ in part)
+            # an explicit list: SQLite then searches the (pixel, exposure) key per pixel
+            ids.update(
+                row[0]
+                for row in self._db.execute(
+                    f"SELECT DISTINCT exposure FROM footprint WHERE pixel IN ({marks})", part
+                )
+            )
+        found = [_indexed(row) for row in self._rows(sorted(ids)) if band in (None, row[4])]
+        return sorted(found, key=lambda item: (item.visit, item.detector, item.path))
+
+    def _rows(self, ids: Sequence[int]) -> list[tuple[Any, ...]]:
+        """The ``ok`` rows (:data:`_COLUMNS`) among ``ids``."""
+        rows = []
+        for start in range(0, len(ids), _CHUNK):
+            part = [int(i) for i in ids[start : start + _CHUNK]]
+            marks = ", ".join("?" for _ in part)
+            rows += self._db.execute(
+                f"SELECT {_COLUMNS} FROM exposures WHERE status = 'ok' AND id IN ({marks})", part
+            ).fetchall()
+        return rows
 
     def by_ids(self, ids: Sequence[int]) -> list[IndexedExposure]:
         """The usable inputs of row ``ids``, in the order of ``ids``.
@@ -583,14 +593,7 @@ class ExposureIndex:
         CellCoaddFormatError
             When a row is missing or no longer usable (re-indexed, bad or vanished).
         """
-        rows = {}
-        for start in range(0, len(ids), 500):
-            part = [int(i) for i in ids[start : start + 500]]
-            marks = ", ".join("?" for _ in part)
-            for row in self._db.execute(
-                f"SELECT {_COLUMNS} FROM exposures WHERE status = 'ok' AND id IN ({marks})", part
-            ):
-                rows[row[0]] = row
+        rows = {row[0]: row for row in self._rows(ids)}
         missing = [i for i in ids if i not in rows]
         if missing:
             raise CellCoaddFormatError(
@@ -639,6 +642,8 @@ class ExposureIndex:
 
 
 _COLUMNS = "id, entry, visit, detector, band, corners, files, header"
+#: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
+_CHUNK = 900
 
 
 def _indexed(row: tuple[Any, ...]) -> IndexedExposure:
