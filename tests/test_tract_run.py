@@ -118,6 +118,34 @@ def test_plan_assigns_inputs_to_the_patches_they_may_touch(field):
     assert corner == {(v, d) for v in range(3) for d in (0, 1, 3, 4)}
 
 
+def test_plan_needs_a_band_when_the_tract_has_several(tmp_path):
+    from exposure_factory import make_wcs
+
+    from cellcoadd.errors import ConfigError
+    from cellcoadd.geometry.box import Box
+    from cellcoadd.model.maskbits import MaskBits
+    from cellcoadd.model.sources import ExposureHeader
+
+    tract = skymap()[0]
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        for visit, band in enumerate("rig"):
+            wcs = make_wcs(tract.center, (100, 100), 0.2)
+            header = ExposureHeader(visit, 0, band, wcs, (100, 100), Box.from_shape((100, 100)),
+                                    30.0, MaskBits())  # fmt: skip
+            index.put(ManifestEntry(path=f"/data/v{visit}.fits"), header,
+                      [FileStamp(f"/data/v{visit}.fits", 1, 1)])  # fmt: skip
+        index.commit()
+        with pytest.raises(ConfigError, match=r"bands \['g', 'i', 'r'\].*give one band"):
+            plan_tract(index, skymap(), 0)
+        plan = plan_tract(index, skymap(), 0, band="i")
+    assert plan.band == "i" and plan.patches
+    assert all(len(p.inputs) == 1 for p in plan.patches)  # only visit 1 (band i)
+    # a patch asked for that no input touches: planned without inputs
+    with ExposureIndex(tmp_path / "inputs.sqlite", readonly=True) as index:
+        far = plan_tract(index, skymap(), 0, patches=[(0, 0)], band="z")
+    assert [(p.index, p.inputs) for p in far.patches] == [((0, 0), ())]
+
+
 def test_seed_and_input_changes_rebuild_exactly_the_affected_patches(field, tmp_path):
     root = _copy_field(field, tmp_path)
     out = tmp_path / "out"

@@ -361,6 +361,7 @@ def run_tract(
             result.planned.append(item.index)
             if not item.inputs:
                 result.no_inputs.append(item.index)
+                target.unlink(missing_ok=True)  # built before from inputs now gone: stale
                 ledger.set(tract_id, item.index, state="no_inputs", **record)
                 continue
             old = known.get((tract_id, item.index))
