@@ -38,6 +38,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -226,36 +227,53 @@ def file_sha256(path: str) -> str:
 class IndexedExposure:
     """One usable input of the index (an ``ok`` row): how to open it and its header.
 
+    The stored JSON is parsed when first asked for, so that a query returning hundreds
+    of rows costs little more than reading them.
+
     Attributes
     ----------
     id : int
         Row id in the index.
-    entry : ManifestEntry
-        How to open the file (absolute paths).
+    path : str
+        The exposure file (absolute).
     visit, detector : int
     band : str
+    entry : ManifestEntry
+        How to open the file (absolute paths).
     corners : numpy.ndarray
         ``(4, 2)`` RA/Dec (deg) of its footprint's corners.
     files : tuple of FileStamp
         Every file it reads (exposure, PSF model, background) as indexed.
-    header_json : str
-        The described header (:func:`header_from_json`).
+    header_json : str or None
+        The described header (:func:`header_from_json`); None when not read (queries).
     """
 
     id: int
-    entry: ManifestEntry
+    path: str
     visit: int
     detector: int
     band: str
-    corners: np.ndarray = field(repr=False)
-    files: tuple[FileStamp, ...] = field(repr=False)
-    header_json: str = field(repr=False)
+    entry_json: str = field(repr=False)
+    corners_json: str = field(repr=False)
+    files_json: str = field(repr=False)
+    header_json: str | None = field(default=None, repr=False)
 
-    @property
-    def path(self) -> str:
-        return self.entry.path
+    @cached_property
+    def entry(self) -> ManifestEntry:
+        return ManifestEntry.model_validate_json(self.entry_json)
+
+    @cached_property
+    def corners(self) -> np.ndarray:
+        return np.asarray(json.loads(self.corners_json), dtype=float)
+
+    @cached_property
+    def files(self) -> tuple[FileStamp, ...]:
+        return tuple(FileStamp(p, s, m, h) for p, s, m, h in json.loads(self.files_json))
 
     def header(self) -> ExposureHeader:
+        """The described header (rows from :meth:`ExposureIndex.by_ids` only)."""
+        if self.header_json is None:
+            raise CellCoaddFormatError(self.path, "its header was not read from the index")
         return header_from_json(self.header_json)
 
     def source(self) -> ExposureSource:
@@ -571,17 +589,20 @@ class ExposureIndex:
                     f"SELECT DISTINCT exposure FROM footprint WHERE pixel IN ({marks})", part
                 )
             )
-        found = [_indexed(row) for row in self._rows(sorted(ids)) if band in (None, row[4])]
+        found = [
+            _indexed(row) for row in self._rows(sorted(ids), header=False) if band in (None, row[4])
+        ]
         return sorted(found, key=lambda item: (item.visit, item.detector, item.path))
 
-    def _rows(self, ids: Sequence[int]) -> list[tuple[Any, ...]]:
-        """The ``ok`` rows (:data:`_COLUMNS`) among ``ids``."""
+    def _rows(self, ids: Sequence[int], header: bool = True) -> list[tuple[Any, ...]]:
+        """The ``ok`` rows (:data:`_COLUMNS`, the header or NULL) among ``ids``."""
+        columns = _COLUMNS + (", header" if header else ", NULL")
         rows = []
         for start in range(0, len(ids), _CHUNK):
             part = [int(i) for i in ids[start : start + _CHUNK]]
             marks = ", ".join("?" for _ in part)
             rows += self._db.execute(
-                f"SELECT {_COLUMNS} FROM exposures WHERE status = 'ok' AND id IN ({marks})", part
+                f"SELECT {columns} FROM exposures WHERE status = 'ok' AND id IN ({marks})", part
             ).fetchall()
         return rows
 
@@ -641,22 +662,15 @@ class ExposureIndex:
         }
 
 
-_COLUMNS = "id, entry, visit, detector, band, corners, files, header"
+_COLUMNS = "id, path, visit, detector, band, entry, corners, files"
 #: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
 _CHUNK = 900
 
 
 def _indexed(row: tuple[Any, ...]) -> IndexedExposure:
-    row_id, entry, visit, detector, band, corners, files, header = row
+    row_id, path, visit, detector, band, entry, corners, files, header = row
     return IndexedExposure(
-        id=int(row_id),
-        entry=ManifestEntry.model_validate_json(entry),
-        visit=int(visit),
-        detector=int(detector),
-        band=str(band),
-        corners=np.asarray(json.loads(corners), dtype=float),
-        files=tuple(FileStamp(p, s, m, h) for p, s, m, h in json.loads(files)),
-        header_json=header,
+        int(row_id), path, int(visit), int(detector), str(band), entry, corners, files, header
     )
 
 
