@@ -323,3 +323,57 @@ def test_a_worker_killed_mid_patch_is_retried_on_a_local_cluster(field, tmp_path
     with Ledger(tmp_path / "out") as ledger:
         assert max(row.attempts for row in ledger.rows(0).values()) >= 2
     assert not _same_outputs(tmp_path / "out", field / "reference")
+
+
+def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
+    """Survey files (DES layout: the real DECam TPV header, PSFEx model, weight map, DESDM
+    mask bits) listed in a manifest: indexed, run, and built by `cellcoadd build`."""
+    from test_survey_readers import (
+        DES_NX,
+        DES_NY,
+        DES_PSF,
+        _need_des_files,
+        des_planes,
+        des_tpv_wcs,
+        write_des,
+    )
+
+    from cellcoadd import BuildConfig, SkyMap, SkyMapConfig
+    from cellcoadd.io import DES_BAD_MASK_BITS
+
+    _need_des_files()
+    paths = [
+        write_des(tmp_path / f"D{v:08d}_c12.fits", des_planes(seed=v), shift=shift)
+        for v, shift in enumerate([(0.0, 0.0), (40.3, -25.7)])
+    ]
+    manifest = tmp_path / "des.toml"
+    manifest.write_text(
+        "".join(
+            f'[[exposures]]\npath = "{p.name}"\nlayout = "des"\npsf = "{DES_PSF}"\n'
+            f"zero_point = 30.0\nvisit = {v}\n\n"
+            for v, p in enumerate(paths)
+        )
+    )
+    (ra,), (dec,) = des_tpv_wcs().all_pix2world([DES_NX / 2], [DES_NY / 2], 0)
+    config = SkyMapConfig(
+        pixel_scale=0.2, cell_inner=40, cell_border=10, cells_per_patch=2, patches_per_tract=2
+    )
+    (tmp_path / "skymap.json").write_text(SkyMap.from_centers([(ra, dec)], config).to_json())
+    build = BuildConfig(n_noise=1, psf_size=15, bad_mask_bits=DES_BAD_MASK_BITS)
+    (tmp_path / "build.json").write_text(build.model_dump_json())
+    runner = CliRunner()
+    db = tmp_path / "inputs.sqlite"
+    result = runner.invoke(cli, ["index", "--manifest", str(manifest), "--db", str(db), "-q"])
+    assert result.exit_code == 0 and "2 added" in result.output, result.output
+    out = tmp_path / "run"
+    result = runner.invoke(cli, _run_args(tmp_path, out, "--patch", "1,0"))
+    assert result.exit_code == 0, result.output
+    built = tmp_path / "built.fits"
+    args = ["build", "--manifest", str(manifest), "--skymap", str(tmp_path / "skymap.json")]
+    args += ["--tract", "0", "--patch", "1,0", "--out", str(built)]
+    args += ["--config", str(tmp_path / "build.json"), "-q"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert (out / "tract_0" / "patch_1_0.fits").read_bytes() == built.read_bytes()
+    report = json.loads((out / "report.json").read_text())
+    assert report["patches"][0]["inputs_used"] == 2
