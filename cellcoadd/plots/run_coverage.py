@@ -89,8 +89,8 @@ def plot_tract_coverage(
         )  # fmt: skip
     if n_cells <= 120:  # cell boundaries, faint
         for k in range(n_cells + 1):
-            ax.axvline(k * size - 0.5, color="white", lw=0.3, alpha=0.5)
-            ax.axhline(k * size - 0.5, color="white", lw=0.3, alpha=0.5)
+            ax.axvline(k * size - 0.5, color="0.2", lw=0.3, alpha=0.35)
+            ax.axhline(k * size - 0.5, color="0.2", lw=0.3, alpha=0.35)
     for k in range(cfg.patches_per_tract + 1):
         edge = k * side - 0.5
         ax.axvline(edge, color="black", lw=1.0)
@@ -105,6 +105,8 @@ def plot_tract_coverage(
     lon.set_ticklabel(exclude_overlapping=True)
     colourbar = fig.colorbar(shown, ax=ax, shrink=0.85, extend="min")
     colourbar.set_label("inputs used per cell")
+    if top <= 12:
+        colourbar.set_ticks(range(1, top + 1))
     handles = [LegendPatch(facecolor="0.6", label="empty cell (x)")]
     if "failed" in states:
         handles.append(
