@@ -275,6 +275,10 @@ def test_kill_9_of_the_run_then_the_same_command_gives_identical_bytes(field, tm
     while _done_patches(out) < 1 and first.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert first.poll() is None, first.stdout.read().decode() if first.stdout else ""
+    # a second run on the same directory meanwhile is refused, naming the first
+    refused = CliRunner().invoke(cli, args)
+    assert refused.exit_code == 1 and isinstance(refused.exception, RunLockedError)
+    assert f"pid {first.pid}," in str(refused.exception)
     os.killpg(first.pid, signal.SIGKILL)  # the whole run, workers included
     first.wait()
     done_before = _done_patches(out)
