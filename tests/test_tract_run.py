@@ -381,3 +381,15 @@ def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
     assert (out / "tract_0" / "patch_1_0.fits").read_bytes() == built.read_bytes()
     report = json.loads((out / "report.json").read_text())
     assert report["patches"][0]["inputs_used"] == 2
+
+
+def test_workers_without_dask_distributed_is_a_clear_error(field, tmp_path, monkeypatch):
+    from cellcoadd.errors import ConfigError
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    with pytest.raises(ConfigError, match=r"pip install 'cellcoadd\[dask\]'"):
+        run_tract(
+            field / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=BUILD, workers=2,
+            patches=[(2, 2)], progress=False, figure=False,
+        )  # fmt: skip
+    assert not (tmp_path / "out").exists()  # refused before any work

@@ -325,6 +325,8 @@ def run_tract(
         When another run holds ``out_dir``.
     """
     start = time.perf_counter()
+    if workers > 1 or scheduler is not None:
+        _import_distributed()  # a clear error before any work
     config = config or BuildConfig()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
