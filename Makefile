@@ -5,8 +5,9 @@ DEMO_OUT ?= demo-output
 # lsst-images (the `lsst` extra) needs Python >= 3.12: its tests run in a second venv
 LSST_VENV ?= .venv-lsst
 LSST_PY := $(LSST_VENV)/bin/python
+LSST_PYTEST_ARGS ?=
 
-.PHONY: demo test test-lsst bench lint schemas clean
+.PHONY: demo test test-all test-lsst bench lint schemas clean
 
 $(VENV)/.installed-base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,9 +24,16 @@ $(VENV)/.installed-test: pyproject.toml
 demo: $(VENV)/.installed-base
 	$(VENV)/bin/cellcoadd demo --out $(DEMO_OUT) --overwrite
 
+# the default suite: tests marked slow (Monte Carlo, long runs) are left out by the addopts
+# of pyproject.toml, which also print the 15 slowest tests
 test: $(VENV)/.installed-test
 	$(PY) -m pytest
 	@$(MAKE) --no-print-directory test-lsst
+
+# every test, the slow ones too (before a release); the last -m given wins over the addopts
+test-all: $(VENV)/.installed-test
+	$(PY) -m pytest -m 'slow or not slow'
+	@$(MAKE) --no-print-directory test-lsst LSST_PYTEST_ARGS="-m 'slow or not slow'"
 
 # tests/test_lsst_images.py in $(LSST_VENV), made with the newest pyenv 3.12 (else a plain
 # python3.12 on PATH); without any Python 3.12 it is skipped, unless CI is set (then fails)
@@ -40,7 +48,7 @@ test-lsst:
 	if [ ! -f $(LSST_VENV)/.installed ] || [ pyproject.toml -nt $(LSST_VENV)/.installed ]; then \
 		$(LSST_PY) -m pip install -q -e ".[lsst]" "pytest>=7.4"; touch $(LSST_VENV)/.installed; \
 	fi; \
-	$(LSST_PY) -m pytest tests/test_lsst_images.py
+	$(LSST_PY) -m pytest tests/test_lsst_images.py $(LSST_PYTEST_ARGS)
 
 bench: $(VENV)/.installed-test
 	for script in benchmarks/bench_*.py; do $(PY) $$script || exit 1; done

@@ -37,7 +37,7 @@ process CPU time:
   accumulation ``out += weight * sum`` (2 FLOP); per output pixel, shared by its planes,
   the two sets of six normalised Lanczos weights (``WEIGHT_FLOP``: the multiplications,
   additions, subtractions and the division in
-  :func:`cellcoadd.builder.kernels.lanczos._lanczos_taps`, twice; comparisons, selects,
+  :func:`cellcoadd.builder.kernels.lanczos.lanczos_taps`, twice; comparisons, selects,
   ``floor`` and integer conversions not counted). So ``79 + WEIGHT_FLOP / P`` FLOP per
   output pixel-plane. ``% peak (72)`` counts only the 72 FLOP of the 36 multiply-adds of
   the taps, a floor on any count.

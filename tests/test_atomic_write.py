@@ -68,7 +68,7 @@ def test_concurrent_writers_of_a_new_file(tmp_path, name):
     outcomes = sorted((results.get(timeout=2 * _TIMEOUT) for _ in writers), key=lambda r: r[1])
     for writer in writers:
         writer.join(_TIMEOUT)
-    assert [outcome[1] for outcome in outcomes] == ["FileExistsError", "ok"], outcomes
+    assert [outcome[1] for outcome in outcomes] == ["CellCoaddFileExistsError", "ok"], outcomes
     assert f"{target} exists; pass overwrite=True" in outcomes[0][2]
     winner = outcomes[1][0]
     if kind == "coadd":

@@ -8,7 +8,7 @@ import pytest
 
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE
 from cellcoadd.shear import bfd
-from cellcoadd.shear.bfd_prior import _half_plane, _inverse_shear
+from cellcoadd.shear.bfd._prior import _half_plane, _inverse_shear
 
 SCALE = 0.2
 # u West: du/dx < 0; a rotated, slightly sheared pixel grid tests the jacobian handling.
@@ -105,7 +105,13 @@ def _lower_gamma_int(j, b, t):
     )
 
 
-def test_covariance_from_correlated_noise_realizations():
+@pytest.mark.parametrize(
+    ("n_draws", "tolerance"), [(400, 0.25), pytest.param(1500, 0.12, marks=pytest.mark.slow)]
+)
+def test_covariance_from_correlated_noise_realizations(n_draws, tolerance):
+    """The moments' covariance from correlated noise realizations against a Monte Carlo of
+    ``n_draws`` noise fields; ``tolerance``: on the covariance over the product of the
+    Monte Carlo's standard deviations, whose own scatter is ~1 / sqrt(n_draws)."""
     rng = np.random.default_rng(3)
     kernel = np.array([[0.1, 0.3, 0.1], [0.3, 1.0, 0.2], [0.05, 0.3, 0.1]])  # anisotropic
 
@@ -130,12 +136,12 @@ def test_covariance_from_correlated_noise_realizations():
             bfd.measure_moments(
                 bfd.fourier_data(correlated((48, 48)), psf, JAC), recentre=False
             ).even
-            for _ in range(1500)
+            for _ in range(n_draws)
         ]
     )
     mc = np.cov(draws.T)
     scale = np.sqrt(np.outer(np.diag(mc), np.diag(mc)))
-    np.testing.assert_allclose(predicted.cov_even / scale, mc / scale, atol=0.12)
+    np.testing.assert_allclose(predicted.cov_even / scale, mc / scale, atol=tolerance)
     # The white-noise shortcut agrees with realizations of white noise.
     white = bfd.fourier_data(image, psf, JAC, noise_images=rng.normal(0, 2.0, (4, 192, 192)))
     shortcut = bfd.fourier_data(image, psf, JAC, noise_variance=4.0)
@@ -458,17 +464,26 @@ def test_oversampled_covariance_matches_monte_carlo():
         bfd.fourier_data(clean, psf, JAC, oversample=0)
 
 
-def test_estimator_recovers_input_shear():
+@pytest.mark.parametrize(
+    ("n_templates", "n_gal", "sigma_m_max", "m_max"),
+    [
+        pytest.param(40, 40, 0.025, 0.05, id="40-galaxies"),
+        pytest.param(100, 120, 0.012, 0.02, id="120-galaxies", marks=pytest.mark.slow),
+    ],
+)
+def test_estimator_recovers_input_shear(n_templates, n_gal, sigma_m_max, m_max):
     """End to end: GalSim galaxies sheared by g1 = +-0.02, noise-free templates.
 
-    Targets: 120 exponential galaxies (half-light radius 0.5-0.7 arcsec, flux S/N ~25-50,
-    sigma_e = 0.02 as in the paper), each in a 90-degree ring pair, each with a noise field
-    and its negative, sheared by g1 = +0.02 and -0.02 with the same noise; Moffat PSF
-    (FWHM 0.95 arcsec, beta 3.5, g = (0.01, 0.02)) at 0.27 arcsec/pixel, 48 x 48 stamps,
-    random sub-pixel offsets. Templates: 100 other galaxies of the same population,
-    noise-free, random offsets, 8 rotations and the position grid. Selection 5 < S/N < 50.
-    m = (g+ - g-) / 0.04 - 1, its error by jackknife over galaxies: this test reaches
-    sigma_m ~ 0.007 (larger runs: 400 galaxies give m = 0.0008 +- 0.0039).
+    Targets: ``n_gal`` (120) exponential galaxies (half-light radius 0.5-0.7 arcsec, flux
+    S/N ~25-50, sigma_e = 0.02 as in the paper), each in a 90-degree ring pair, each with a
+    noise field and its negative, sheared by g1 = +0.02 and -0.02 with the same noise;
+    Moffat PSF (FWHM 0.95 arcsec, beta 3.5, g = (0.01, 0.02)) at 0.27 arcsec/pixel,
+    48 x 48 stamps, random sub-pixel offsets. Templates: ``n_templates`` (100) other
+    galaxies of the same population, noise-free, random offsets, 8 rotations and the
+    position grid. Selection 5 < S/N < 50. m = (g+ - g-) / 0.04 - 1, its error by
+    jackknife over galaxies: this test reaches sigma_m ~ 0.007 (measured: m = 0.0005 +-
+    0.0082; larger runs: 400 galaxies give m = 0.0008 +- 0.0039). The default suite's 40
+    galaxies and 40 templates, with bounds about twice as loose: m = -0.027 +- 0.020.
     """
     scale, n, sig = 0.27, 48, 0.002
     jac = np.array([[-scale, 0.0], [0.0, scale]])
@@ -496,9 +511,8 @@ def test_estimator_recovers_input_shear():
 
     templates = [
         bfd.fourier_data(draw(p, 0, (0, 0), rng.uniform(-0.5, 0.5, 2)), psf_img, jac)
-        for p in population(100)
+        for p in population(n_templates)
     ]
-    n_gal = 120
     gals = population(n_gal)
     offsets = rng.uniform(-0.5, 0.5, (n_gal, 2, 2))
     noise = rng.normal(0, sig, (n_gal, 2, n, n))
@@ -540,7 +554,8 @@ def test_estimator_recovers_input_shear():
     m, c = m_and_c(everyone)
     jk = np.array([m_and_c(np.delete(everyone, i))[0] for i in range(n_gal)])
     sigma_m = np.sqrt((n_gal - 1) * jk.var())
-    assert sigma_m < 0.012
+    print(f"m = {m:.4f} +- {sigma_m:.4f}, c = {c}")  # shown with pytest -s
+    assert sigma_m < sigma_m_max
     assert abs(m) < 3 * sigma_m
-    assert abs(m) < 0.02
+    assert abs(m) < m_max
     assert np.all(np.abs(c) < 1e-3)

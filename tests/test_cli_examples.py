@@ -33,7 +33,7 @@ SKIP = {
 SHRINK = {
     "--visits": "1",
     "--objects": "2",
-    "--n-objects": "4",
+    "--n-objects": "2",
     "--trials": "20",
     "--n-cells": "40",
     "--workers": "1",
@@ -42,7 +42,7 @@ SHRINK = {
 EXTRA = {
     "demo": ["--visits", "1", "--workers", "1", "--quiet"],
     "simulate": ["--visits", "1", "--objects", "2", "--quiet"],
-    "validate-shear": ["--n-objects", "4", "--bfd-templates", "10", "--quiet"],
+    "validate-shear": ["--n-objects", "2", "--bfd-templates", "4", "--quiet"],
     "analyze rejection": ["--n-cells", "40", "--n-visits", "4"],
     "analyze snr-loss": ["--trials", "20"],
 }

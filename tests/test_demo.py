@@ -7,8 +7,7 @@ import pytest
 from click.testing import CliRunner
 
 from cellcoadd import BuildConfig, build_patch
-from cellcoadd.builder.footprint import footprint_box
-from cellcoadd.builder.mapping import map_box
+from cellcoadd.builder.mapping import footprint_box, map_box
 from cellcoadd.cli.main import cli
 from cellcoadd.geometry import Box
 from cellcoadd.sim import DEMO_PATCH, FieldConfig, SimConfig, demo_skymap, simulate_field

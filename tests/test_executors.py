@@ -66,7 +66,7 @@ def test_a_worker_process_dying_is_reported_with_its_cell(tiny):
 def test_a_worker_raising_is_reported_with_its_cell(tiny):
     patch, good, _ = tiny
     config = BuildConfig(n_noise=1, psf_size=35)  # larger than the 32-pixel cells
-    with pytest.raises(CellBuildError, match="ValueError: psf_size 35 exceeds") as info:
+    with pytest.raises(CellBuildError, match="ConfigError: psf_size 35 exceeds") as info:
         build_patch(patch, good, config, progress=False, workers=2)
     assert _named_cell(str(info.value)) in patch.cell_indices
     assert "Traceback" in str(info.value)  # the worker's traceback travels with it
@@ -181,7 +181,7 @@ def test_files_are_byte_identical_whatever_the_executor(tmp_path, tiny, dask_cli
 def test_a_raising_cell_on_dask_is_named(tiny, dask_client):
     patch, good, _ = tiny
     config = BuildConfig(n_noise=1, psf_size=35)
-    with pytest.raises(CellBuildError, match="ValueError: psf_size 35 exceeds") as info:
+    with pytest.raises(CellBuildError, match="ConfigError: psf_size 35 exceeds") as info:
         build_patch(patch, good, config, progress=False, scheduler=dask_client)
     assert _named_cell(str(info.value)) in patch.cell_indices
 

@@ -16,10 +16,10 @@ import pytest
 from astropy.wcs import WCS, Sip
 from survey_psf_factory import build_piff_model, write_psfex_file
 
-from cellcoadd.errors import CellCoaddFormatError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, PsfCodecError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
-from cellcoadd.io.exposures.psf_codec import PsfCodecError, decode_psf, encode_psf
+from cellcoadd.io.exposures.psf_codec import decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PiffPsf, PsfexPsf

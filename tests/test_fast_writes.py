@@ -29,6 +29,7 @@ from cellcoadd.io._files import parallel, writeback
 from cellcoadd.io._fits import direct as fits_direct
 from cellcoadd.io.coadd import fits_format, hdf5_chunks, hdf5_format
 from cellcoadd.io.coadd.hdf5_chunks import ChunkScratch, fletcher32
+from cellcoadd.model import planes as cell_planes
 
 
 def _reference_fletcher32(data: bytes) -> int:
@@ -102,7 +103,7 @@ def test_written_hdf5_chunks_are_those_hdf5_would_write(tmp_path):
     with h5py.File(path, "r") as h5, h5py.File(reference, "w") as ref:
         for index in patch.cells:
             group = h5["cells"][hdf5_format.group_name(index)]
-            for name in (*hdf5_format._DTYPES, "inputs"):
+            for name in cell_planes.cell_objects():
                 dataset = group[name]
                 if dataset.size == 0:
                     continue
@@ -123,7 +124,7 @@ def test_hdf5_flipped_byte_in_any_plane_is_reported(tmp_path, compression):
     api.write(patch, path, compression=compression)
     raw = path.read_bytes()
     index = next(iter(patch.cells))
-    for plane in (*hdf5_format._DTYPES, "inputs"):
+    for plane in cell_planes.cell_objects():
         with h5py.File(path, "r") as h5:
             info = h5[f"cells/{hdf5_format.group_name(index)}/{plane}"].id.get_chunk_info(0)
         for offset in (info.byte_offset, info.byte_offset + info.size // 2):

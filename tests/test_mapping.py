@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from astropy.wcs import WCS, Sip
 
-from cellcoadd.builder.footprint import footprint_box
-from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
-from cellcoadd.builder.mapping import PixelMapping, map_box, map_points
+from cellcoadd.builder.kernels.descriptor import LANCZOS3
+from cellcoadd.builder.kernels.warp import warp_planes
+from cellcoadd.builder.mapping import PixelMapping, footprint_box, map_box, map_points
 from cellcoadd.errors import MappingError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import pixel_area
@@ -132,7 +132,7 @@ def test_footprint_box_matches_brute_force():
         x_start=min(taps_x), x_stop=max(taps_x) + 1, y_start=min(taps_y), y_stop=max(taps_y) + 1
     )
     assert footprint_box(mapping) == expected
-    assert footprint_box(mapping, half_width=KERNEL_HALF_WIDTH) == expected
+    assert footprint_box(mapping, kernel=LANCZOS3) == expected
     # The footprint is exactly what the warp needs: a cutout of it is warpable.
     cutout = np.zeros((1, *expected.shape))
     warp_planes(

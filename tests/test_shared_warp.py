@@ -16,7 +16,8 @@ from exposure_factory import make_exposure
 
 from cellcoadd import BuildConfig, MaskBits, SkyMap, SkyMapConfig, build_patch
 from cellcoadd.builder.cell import CellBlock, build_cells
-from cellcoadd.builder.exposure_frame import exposure_frame, projected_valid_box
+from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame, projected_valid_box
+from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.mapping import map_box
 from cellcoadd.geometry.box import Box
 
@@ -147,8 +148,9 @@ def test_an_exposure_serving_none_of_the_area_is_left_out(patch, exposures):
     far = make_exposure((210.0, 10.0), visit=9)
     frame = exposure_frame(patch.tract.wcs, patch.outer_bbox, far, 1e-3)
     assert frame.serves_nothing
-    block = CellBlock(patch.cells[:2], BUILD, 0, BITS, "r", record_distant=False)
-    block.add(far, frame)
+    settings = BuildSettings(BUILD, 0, BITS, "r", patch.outer_bbox, record_distant=False)
+    block = CellBlock(patch.cells[:2], settings)
+    block.add(BuildInput.of(far), frame)
     assert all(not records for records in block.records)
 
 
@@ -213,3 +215,63 @@ def test_frames_hold_only_their_grid_nodes_and_share_interpolation_weights(patch
         alone = exposure_frame(patch.tract.wcs, patch.outer_bbox, exposure, 1e-3)
         for name in ("x", "y", "area_ratio"):
             assert np.array_equal(getattr(alone.mapping, name), getattr(frame.mapping, name))
+
+
+def test_cells_mapping_themselves_take_the_same_warp(patch, exposures, serial):
+    """Without a shared mapping (as for an exposure partly off its projection) each cell
+    maps itself and goes through the same warp, PSF and records: the same inputs are used
+    and the pixels agree within the mapping's tolerance."""
+    area = patch.outer_bbox
+    no_shared = [ExposureFrame(area, None) for _ in exposures]
+    mask_bits = serial.metadata.mask_bits
+    cells = patch.cells[:6]
+    built = build_cells(
+        cells, exposures, BUILD, seed=4, mask_bits=mask_bits, area=area, frames=no_shared
+    )
+    compared = 0
+    for cell in built:
+        in_patch = serial.cells[cell.index]
+        assert _used(cell) == _used(in_patch)
+        if not _used(cell):
+            continue
+        compared += 1
+        scale = float(np.abs(in_patch.image).max())
+        np.testing.assert_allclose(cell.image, in_patch.image, rtol=0, atol=1e-4 * scale)
+        np.testing.assert_allclose(cell.noise, in_patch.noise, rtol=0, atol=1e-3)
+        np.testing.assert_allclose(cell.psf, in_patch.psf, rtol=0, atol=1e-6)
+        assert np.array_equal(cell.mask, in_patch.mask)
+    assert compared >= 3
+
+
+def test_an_input_in_memory_is_its_own_source(exposures):
+    exposure = exposures[1]
+    item = BuildInput.of(exposure)
+    assert item.source is None and item.header is exposure and item.key == exposure.key
+    loaded, origin = item.load(Box(x_start=10, x_stop=20, y_start=5, y_stop=9))
+    assert loaded is exposure and origin == (0, 0)  # whole: positions need no shift
+    assert BuildInput.of(item) is item
+
+
+def test_the_candidates_of_a_cell_hold_every_input_it_records(patch, exposures, serial):
+    """A patch build sends a block only the inputs its frames put near one of its cells:
+    every input a cell records (used or rejected) is among them, a far one is not."""
+    far = dataclasses.replace(make_exposure((210.0, 10.0), visit=9), mask_bits=BITS)
+    build = prepare(
+        patch.cells,
+        [*exposures, far],
+        BUILD,
+        4,
+        one_band=True,
+        area=patch.outer_bbox,
+        record_distant=False,
+    )
+    keys = [item.key for item in build.inputs]
+    served = 0
+    for cell in patch.cells:
+        candidates = {keys[k] for k in build.candidates([cell])}
+        recorded = {(r.visit, r.detector) for r in serial.cells[cell.index].inputs}
+        assert recorded <= candidates, cell.index
+        assert far.key not in candidates
+        served += bool(recorded)
+    assert served == len(patch.cells)
+    assert build.candidates(patch.cells) == list(range(len(exposures)))

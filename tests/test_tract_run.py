@@ -384,10 +384,10 @@ def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
 
 
 def test_workers_without_dask_distributed_is_a_clear_error(field, tmp_path, monkeypatch):
-    from cellcoadd.errors import ConfigError
+    from cellcoadd.errors import MissingDependencyError
 
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
-    with pytest.raises(ConfigError, match=r"pip install 'cellcoadd\[dask\]'"):
+    with pytest.raises(MissingDependencyError, match=r"pip install 'cellcoadd\[dask\]'"):
         run_tract(
             field / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=BUILD, workers=2,
             patches=[(2, 2)], progress=False, figure=False,

@@ -9,8 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.lanczos import TABLE_WIDTH
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
+from cellcoadd.builder.kernels.reference import reference_accumulate, tap_sum
 from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH, warp_planes
 
 
@@ -387,3 +389,93 @@ def test_accumulating_equals_warping_into_zeros_then_adding():
         pixels, x_src, y_src, np.zeros_like(start), weights, scales, which
     )
     assert np.array_equal(direct, start + into_zeros)
+
+
+def _reference(planes, x_src, y_src, start, weights, scales, which) -> np.ndarray:
+    out = start.copy()
+    reference_accumulate(planes, x_src, y_src, out, weights, scales, which)
+    return out
+
+
+@pytest.mark.parametrize("n_planes", [1, 2, 3, 4, 5, 6, 7, 8, 9, 13])
+def test_fast_kernel_is_bit_identical_to_the_plain_reference(n_planes):
+    # The SIMD sums, weight tables, row runs and prefetches change nothing: every value
+    # is the plain per-pixel, per-plane, per-tap definition of kernels/reference.py.
+    rng = np.random.default_rng(40 + n_planes)
+    planes = rng.normal(size=(n_planes, 130, 130))
+    planes[:, 60:62, 50:53] = rng.normal(size=(n_planes, 2, 3)) * 1e6  # far-off values
+    planes[:, 100, 100] = np.nan  # inside some footprints only
+    yy, xx = np.mgrid[0:9, 0 : TABLE_WIDTH + 21].astype(np.float64)  # rows cut in runs
+    x_src = 10.3 + 0.41 * xx + 0.2 * yy + 0.3 * np.sin(yy / 3)
+    y_src = 20.7 + 0.05 * xx + 0.8 * yy + 0.2 * np.cos(xx / 11)
+    x_src[2] = np.round(x_src[2])  # integral along x only
+    x_src[4, :5], y_src[4, :5] = 50.0, 30.0  # integral along both: a copy
+    x_src[6, 3], y_src[6, 3] = 100.0, 100.0  # a copy of the NaN pixel, NaN around it
+    weights = rng.uniform(0.5, 2.0, n_planes)
+    scales = rng.uniform(0.5, 1.5, (2, *x_src.shape))
+    which = rng.integers(-1, 2, n_planes)
+    start = rng.normal(size=(n_planes, *x_src.shape))
+    pixels = np.ascontiguousarray(planes.transpose(1, 2, 0))
+    fast = accumulate_warped(pixels, x_src, y_src, start.copy(), weights, scales, which)
+    reference = _reference(planes, x_src, y_src, start, weights, scales, which)
+    assert np.isnan(fast).any() and not np.isnan(fast).all()
+    assert np.array_equal(fast, reference, equal_nan=True)
+    # warp_planes: into zeros, weight one, no scale
+    into_zeros = _reference(
+        planes,
+        x_src,
+        y_src,
+        np.zeros_like(start),
+        np.ones(n_planes),
+        np.ones((1, 1, 1)),
+        np.full(n_planes, -1),
+    )
+    assert np.array_equal(warp_planes(planes, x_src, y_src), into_zeros, equal_nan=True)
+
+
+def test_reference_matches_the_sinc_definition(rotated_job):
+    # The reference's weights are Lanczos-3 itself, not just the fast kernel's
+    planes, x_src, y_src = rotated_job
+    out = _reference(
+        planes,
+        x_src,
+        y_src,
+        np.zeros((3, *x_src.shape)),
+        np.ones(3),
+        np.ones((1, 1, 1)),
+        -np.ones(3, dtype=np.int64),
+    )
+    for plane, result in zip(planes, out, strict=True):
+        expected = reference_warp(plane, x_src, y_src)
+        assert np.abs(result - expected).max() < 1e-12 * np.abs(plane).max()
+
+
+@pytest.mark.parametrize("n_terms", [1, 2, 3, 5, 6, 7, 12])
+def test_tap_sum_order(n_terms):
+    # Pairs, round after round: for six ((t0 + t1) + (t2 + t3)) + (t4 + t5). Terms of very
+    # different sizes make the rounding of each order visible.
+    terms = np.array([1e16, 1.0, -1e16, 3.0, 2.5, -7.0, 1e-3, 4.0, 1e15, -1e15, 0.5, 9.0])
+    terms = terms[:n_terms]
+    values = list(terms)
+    while len(values) > 1:
+        pairs = [values[k] + values[k + 1] for k in range(0, len(values) - 1, 2)]
+        values = pairs + values[2 * len(pairs) :]
+    assert tap_sum(terms.copy()) == values[0]
+    if n_terms == 6:
+        t = terms
+        assert tap_sum(t.copy()) == ((t[0] + t[1]) + (t[2] + t[3])) + (t[4] + t[5])
+
+
+def test_kernel_descriptor_is_what_the_warp_reads():
+    assert (WARP_KERNEL.name, WARP_KERNEL.half_width, WARP_KERNEL.taps) == ("lanczos3", 3, 6)
+    assert WARP_KERNEL.tap_range(7.2, 9.9) == (5, 13)  # floor(x) - 2 .. floor(x) + 3
+    assert WARP_KERNEL.tap_range(-0.5, -0.5) == (-3, 3)
+    # the taps the kernel reads are exactly the descriptor's: one input pixel more on
+    # either side raises
+    planes = np.zeros((1, 20, 20))
+    start, stop = WARP_KERNEL.tap_range(2.0, 16.0)
+    assert (start, stop) == (0, 20)
+    warp_planes(planes, np.array([[2.0, 16.0]]), np.array([[2.0, 16.0]]))
+    for x in (1.99, 17.0):
+        with pytest.raises(ValueError, match="taps"):
+            warp_planes(planes, np.array([[x]]), np.array([[5.0]]))

@@ -13,6 +13,8 @@ from statistics import NormalDist
 import galsim
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
+
 #: FWHM of a Gaussian in units of its sigma, 2 sqrt(2 ln 2).
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
@@ -20,7 +22,9 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 def galaxy_sigma(resolution: float, psf_sigma: float) -> float:
     """Galaxy sigma giving resolution ``R`` with a PSF of sigma ``psf_sigma`` (same unit)."""
     if not 0.0 <= resolution < 1.0:
-        raise ValueError(f"resolution must be in [0, 1), got {resolution}")
+        raise CellCoaddRangeError(
+            f"resolution must be in [0, 1), got {resolution}", value=resolution, low=0.0, high=1.0
+        )
     return float(psf_sigma * np.sqrt(resolution / (1.0 - resolution)))
 
 
@@ -52,7 +56,7 @@ def epoch_psf_sigmas(
         Positive PSF sigmas, arcsec.
     """
     if n_epochs < 1:
-        raise ValueError(f"n_epochs must be >= 1, got {n_epochs}")
+        raise CellCoaddRangeError(f"n_epochs must be >= 1, got {n_epochs}", value=n_epochs, low=1)
     if rng is None:
         unit = NormalDist()
         z = np.array([unit.inv_cdf((i + 0.5) / n_epochs) for i in range(n_epochs)])
@@ -62,9 +66,10 @@ def epoch_psf_sigmas(
         z = rng.standard_normal(n_epochs)
     sigmas = psf_sigma * (1.0 + dsigma_over_sigma * z)
     if np.any(sigmas <= 0):
-        raise ValueError(
+        raise CellCoaddValueError(
             f"dsigma_over_sigma={dsigma_over_sigma} with {n_epochs} epochs gives non-positive PSF "
-            "sizes; use a smaller scatter or fewer epochs"
+            "sizes; use a smaller scatter or fewer epochs",
+            value=dsigma_over_sigma,
         )
     return sigmas
 
@@ -123,8 +128,9 @@ def gaussian_templates(
     if stamp_size is None:
         stamp_size = _stamp_size(float(np.hypot(gal_sigma, psf_sigmas.max())), pixel_scale)
     if stamp_size % 2 == 0:
-        raise ValueError(
-            f"stamp_size must be odd so the object sits on a pixel centre: {stamp_size}"
+        raise CellCoaddValueError(
+            f"stamp_size must be odd so the object sits on a pixel centre: {stamp_size}",
+            value=stamp_size,
         )
     templates = np.empty((psf_sigmas.size, stamp_size, stamp_size))
     for epoch, sigma_p in enumerate(psf_sigmas):

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddValueError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.sim.dither import DitherPattern, RotationMode, dither_offsets, visit_rotations
 from cellcoadd.sim.focal_plane import FocalPlaneConfig, lsst_focal_plane
@@ -83,15 +84,16 @@ def classify_cells(
     offsets = np.asarray(visit_offsets, dtype=float).reshape(-1, 2)
     angles = np.asarray(visit_rotations_rad, dtype=float).ravel()
     if angles.size != offsets.shape[0]:
-        raise ValueError("need one rotation per visit offset")
+        raise CellCoaddValueError("need one rotation per visit offset")
     half = 0.5 * cell_size_arcsec
     # Candidate detectors are found at the corners of the cell's bounding box, which is
     # complete only while that box is smaller than every detector.
     max_box = 2.0 * half * float(np.max(np.abs(np.cos(angles)) + np.abs(np.sin(angles)), initial=1))
     if max_box >= focal_plane.min_detector_side_arcsec():
-        raise ValueError(
+        raise CellCoaddValueError(
             f"cell of {cell_size_arcsec:g} arcsec is too large for detectors of "
-            f"{focal_plane.min_detector_side_arcsec():g} arcsec"
+            f"{focal_plane.min_detector_side_arcsec():g} arcsec",
+            value=cell_size_arcsec,
         )
     locator = focal_plane.locator()
     det_centre = np.column_stack(
@@ -259,7 +261,10 @@ def rejection_statistics(
     RejectionStats
     """
     if cell_size_arcmin <= 0 or n_cells < 1 or n_visits < 1:
-        raise ValueError("cell size, n_cells and n_visits must be positive")
+        raise CellCoaddValueError(
+            "cell size, n_cells and n_visits must be positive",
+            value=(cell_size_arcmin, n_cells, n_visits),
+        )
     focal_plane = focal_plane or lsst_focal_plane()
     dither_radius = 3600.0 * (dither_radius_deg or focal_plane.field_radius_deg)
     cell_stream, dither_stream, rotation_stream = (

@@ -33,15 +33,13 @@ from cellcoadd.analysis.gaussian_epochs import (
     galaxy_sigma,
     gaussian_templates,
 )
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
 
 __all__ = [
     "SnrLossTable",
     "coadd_template",
-    "continuous_gaussian_ratio",
-    "epoch_psf_sigmas",
     "exact_ratio_curve",
     "exact_variance_ratio",
-    "gaussian_templates",
     "lsst_snr_loss",
     "monte_carlo_ratio",
     "toy_variance_ratio",
@@ -58,20 +56,22 @@ def _noise_sigma_array(templates: np.ndarray, noise_sigma: float | np.ndarray) -
     sigma = np.asarray(noise_sigma, dtype=float)
     if sigma.ndim == 1:
         if sigma.shape[0] != templates.shape[0]:
-            raise ValueError(
+            raise CellCoaddValueError(
                 f"per-epoch noise_sigma has {sigma.shape[0]} values for {templates.shape[0]} epochs"
             )
         sigma = sigma[:, None, None]
     sigma = np.broadcast_to(sigma, templates.shape)
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
-        raise ValueError("noise_sigma must be finite and positive everywhere")
+        raise CellCoaddValueError("noise_sigma must be finite and positive everywhere")
     return sigma
 
 
 def _as_templates(templates: np.ndarray) -> np.ndarray:
     array = np.asarray(templates, dtype=float)
     if array.ndim != 3 or array.shape[0] < 1:
-        raise ValueError(f"templates must have shape (n_epochs, ny, nx), got {array.shape}")
+        raise CellCoaddValueError(
+            f"templates must have shape (n_epochs, ny, nx), got {array.shape}", value=array.shape
+        )
     return array
 
 
@@ -108,7 +108,9 @@ def _epoch_weights(n_epochs: int, weights: np.ndarray | None) -> np.ndarray:
         return np.ones(n_epochs)
     w = np.asarray(weights, dtype=float)
     if w.shape != (n_epochs,) or not np.all(np.isfinite(w) & (w >= 0)) or w.sum() <= 0:
-        raise ValueError(f"weights must be {n_epochs} finite non-negative numbers, not all zero")
+        raise CellCoaddValueError(
+            f"weights must be {n_epochs} finite non-negative numbers, not all zero"
+        )
     return w
 
 
@@ -343,10 +345,18 @@ def monte_carlo_ratio(
     SnrLossTable
     """
     if psf_sizes not in ("quantiles", "random"):
-        raise ValueError(f"psf_sizes must be 'quantiles' or 'random', got {psf_sizes!r}")
+        raise CellCoaddValueError(
+            f"psf_sizes must be 'quantiles' or 'random', got {psf_sizes!r}",
+            value=psf_sizes,
+            allowed=("quantiles", "random"),
+        )
     n_sets = n_psf_sets if psf_sizes == "random" else 1
     if n_trials < 10 * n_sets:
-        raise ValueError(f"need at least 10 trials per PSF-size set, got {n_trials} for {n_sets}")
+        raise CellCoaddRangeError(
+            f"need at least 10 trials per PSF-size set, got {n_trials} for {n_sets}",
+            value=n_trials,
+            low=10 * n_sets,
+        )
     rng = np.random.default_rng(seed)
     psf_sigma = psf_fwhm / FWHM_PER_SIGMA
     trials_per_set = np.full(n_sets, n_trials // n_sets)

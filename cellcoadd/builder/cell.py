@@ -11,6 +11,13 @@ same inputs hold the same pixels, bit for bit. Image, noise realizations, varian
 masked fraction go through the same normalised Lanczos-3 weights; the PSF is drawn at each
 cell centre and goes through the same mapping. Inputs are added one at a time, so memory
 does not grow with their number.
+
+Every input has one shape (:class:`~cellcoadd.builder.inputs.BuildInput`: an in-memory
+exposure is a source that loads itself), and every build starts with the same set-up
+(:func:`~cellcoadd.builder.inputs.prepare`), whose settings every block shares. A cell
+outside any shared mapping (part of the area off the exposure's projection) maps itself,
+and its pixels go through the same warp (:meth:`CellBlock._contribute`), as does each
+cell of a group whose common box holds pixels none of them could use.
 """
 
 from __future__ import annotations
@@ -28,16 +35,17 @@ from cellcoadd.builder.cell_sums import (
     finish_cell,
     input_record,
 )
-from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
+from cellcoadd.builder.exposure_frame import ExposureFrame, rough_exposure_box
 from cellcoadd.builder.exposure_planes import exposure_planes, translated_mask
-from cellcoadd.builder.footprint import footprint_box
+from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.kernels.accumulate import accumulate_warped
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
-from cellcoadd.builder.mapping import PixelMapping
+from cellcoadd.builder.mapping import PixelMapping, footprint_box
 from cellcoadd.builder.psf import PsfError, psf_moments
-from cellcoadd.builder.select import Candidate, Rejection, rough_exposure_box, select_exposure
-from cellcoadd.errors import InputError
+from cellcoadd.builder.select import Candidate, Rejection, select_exposure
+from cellcoadd.errors import CellCoaddValueError, ConfigError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -45,50 +53,11 @@ from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.sources import (
-    DescribedSource,
-    ExposureHeader,
-    ExposureSource,
-    describe,
-    header_of,
-)
-
-
-def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: BuildConfig) -> None:
-    """Refuse exposures that do not define every required bad-mask bit by name.
-
-    Raises
-    ------
-    InputError
-        Naming the exposure and the missing bits (list them in
-        ``BuildConfig.optional_mask_bits`` if the exposure really has no such pixels).
-    """
-    required = config.required_mask_bits()
-    for exposure in exposures:
-        missing = [name for name in required if name not in exposure.mask_bits.bits]
-        if missing:
-            raise InputError(
-                f"exposure (visit={exposure.visit}, detector={exposure.detector}) does not "
-                f"define the mask bits {missing} named in bad_mask_bits (it defines "
-                f"{sorted(exposure.mask_bits.bits)}); map its bit names, or list them in "
-                "BuildConfig.optional_mask_bits"
-            )
-
-
-def check_unique_inputs(exposures: Sequence[Exposure | ExposureHeader]) -> None:
-    """Refuse duplicate ``(visit, detector)`` pairs (they would be coadded twice)."""
-    seen: set[tuple[int, int]] = set()
-    for exposure in exposures:
-        if exposure.key in seen:
-            raise ValueError(f"duplicate input (visit, detector) = {exposure.key}")
-        seen.add(exposure.key)
-
-
-Input = Exposure | ExposureSource | DescribedSource
+from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource
 
 #: Pixels loaded around a cell's footprint from an exposure source: the interpolation
 #: of bad pixels reads this far, plus the kernel's reach and a margin for the rough box.
-SOURCE_MARGIN = DEFAULT_MAX_RADIUS + 8
+SOURCE_MARGIN = DEFAULT_MAX_RADIUS + WARP_KERNEL.half_width + 5
 
 
 def warped_contribution(
@@ -125,22 +94,9 @@ class CellBlock:
     Parameters
     ----------
     cells : sequence of Cell
-        The cells, all of one tract.
-    config : BuildConfig
-        Build settings.
-    seed : int
-        Seed of the noise realizations.
-    mask_bits : MaskBits
-        Bit definitions of the output masks.
-    band : str or None
-        The band of the coadds; inputs of another band are recorded as ``band_mismatch``.
-    area : Box
-        Tract pixels the exposures are mapped over (default: the cells' outer boxes'
-        bounding box); a patch build passes the patch's, so every block of the patch
-        uses the same mapping.
-    record_distant : bool
-        Record inputs whose projected valid box misses a cell as ``no_overlap`` (default);
-        a patch build leaves them out of the cell's inputs instead.
+        The cells, all of one tract, inside ``settings.area``.
+    settings : BuildSettings
+        What every block of the build shares (:func:`~cellcoadd.builder.inputs.prepare`).
 
     Attributes
     ----------
@@ -148,33 +104,24 @@ class CellBlock:
         The cell being worked on (named when something fails).
     """
 
-    def __init__(
-        self,
-        cells: Sequence[Cell],
-        config: BuildConfig,
-        seed: int,
-        mask_bits: MaskBits,
-        band: str | None,
-        area: Box | None = None,
-        *,
-        record_distant: bool = True,
-    ) -> None:
+    def __init__(self, cells: Sequence[Cell], settings: BuildSettings) -> None:
         if not cells:
-            raise ValueError("a block needs at least one cell")
+            raise CellCoaddValueError("a block needs at least one cell")
         if len({cell.tract for cell in cells}) > 1:
-            raise ValueError("the cells of a block must belong to one tract")
+            raise CellCoaddValueError("the cells of a block must belong to one tract")
         self.cells = list(cells)
         self.current = self.cells[0]
+        config = settings.config
         for cell in self.cells:
             self.current = cell
             if config.psf_size > min(cell.outer_bbox.shape):
-                raise ValueError(
+                raise ConfigError(
                     f"psf_size {config.psf_size} exceeds the outer box {cell.outer_bbox} of "
-                    f"cell {cell.index}"
+                    f"cell {cell.index}",
+                    value=config.psf_size,
+                    cell=cell.index,
                 )
-        self.config, self.seed, self.mask_bits, self.band = config, seed, mask_bits, band
-        self.record_distant = record_distant
-        self.area = area or Box.enclosing([cell.outer_bbox for cell in self.cells])
+        self.settings, self.config = settings, config
         self.sums = BlockSums(
             [cell.outer_bbox for cell in self.cells], config.n_noise, config.psf_size
         )
@@ -182,37 +129,21 @@ class CellBlock:
         self.jacobians = [cell_jacobian(cell) for cell in cells]
         self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
 
-    def add(self, item: Exposure | DescribedSource, frame: ExposureFrame | None = None) -> None:
+    def add(self, item: BuildInput, frame: ExposureFrame | None) -> None:
         """Consider one input for every cell: select, warp and add it where it is usable.
 
-        ``frame``: the input's :func:`exposure_frame` over :attr:`area` (computed here by
-        default). Each cell gets one input record.
+        ``frame``: the input's frame over the build's area
+        (:func:`~cellcoadd.builder.exposure_frame.exposure_frame`), as
+        :func:`~cellcoadd.builder.inputs.prepare` gives it (None for an input of another
+        band, which is not mapped). Each cell gets at most one input record.
         """
-        header = header_of(item)
-        if header.band != self.band:
+        header = item.header
+        if header.band != self.settings.band:
             for records in self.records:
                 records.append(input_record(header, InputStatus.BAND_MISMATCH))
             return
-        if frame is None:
-            frame = exposure_frame(
-                self.cells[0].tract_wcs, self.area, header, self.config.mapping_tolerance
-            )
-        shared: list[int] = []  # cells inside the shared mapping
-        alone: dict[int, Box] = {}  # cells mapping themselves: their rough exposure box
-        for i, cell in enumerate(self.cells):
-            self.current = cell
-            box = cell.outer_bbox
-            if frame.serves_nothing or not box.overlaps(frame.region):
-                if self.record_distant:
-                    self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
-            elif frame.covers(box):
-                shared.append(i)
-            elif frame.mapping is not None:  # beyond the exposure's projected valid box
-                self.records[i].append(_partial_record(frame, box, header))
-            elif (near := rough_exposure_box(cell, header)) is not None:
-                alone[i] = near
-            elif self.record_distant:
-                self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
+        assert frame is not None  # prepare maps every input of the band
+        shared, alone = self._near_cells(header, frame)
         if not shared and not alone:
             return
         mapping = None
@@ -223,48 +154,69 @@ class CellBlock:
                 Box.enclosing([self.cells[i].outer_bbox for i in shared])
             )
             loads.append(footprint_box(mapping).grow(SOURCE_MARGIN))
-        exposure = item if isinstance(item, Exposure) else item.load(Box.enclosing(loads))
+        exposure, origin = item.load(Box.enclosing(loads))
         bad_bits = exposure.mask_bits.mask_of(
             name for name in self.config.bad_mask_bits if name in exposure.mask_bits.bits
         )
         contributions: list[Contribution] = []
         if mapping is not None:
-            self._add_shared(exposure, item, shared, mapping, bad_bits, contributions)
+            self._add_shared(exposure, origin, shared, mapping, bad_bits, contributions)
         for i in alone:
             self.current = self.cells[i]
             found = select_exposure(
                 self.cells[i], exposure, self.config, bad_bits, grid_cache=self.grid_caches[i]
             )
-            self._use(i, exposure, found, bad_bits, contributions)
+            if isinstance(found, Rejection):
+                self._reject(i, exposure, found)
+                continue
+            # its PSF is drawn once the warp succeeded
+            self._contribute(exposure, [(i, found, None)], found.mapping, bad_bits, contributions)
         self.sums.add(contributions)
+
+    def _near_cells(
+        self, header: Exposure | ExposureHeader, frame: ExposureFrame
+    ) -> tuple[list[int], dict[int, Box]]:
+        """Which cells the input may serve: those inside its shared mapping, and those
+        that map themselves (no shared mapping) with their rough exposure box. The other
+        cells get their record here: ``edge`` or ``no_overlap`` when they reach beyond
+        the input's projected valid box, ``no_overlap`` (if recorded) when far."""
+        shared: list[int] = []
+        alone: dict[int, Box] = {}
+        record_distant = self.settings.record_distant
+        for i, cell in enumerate(self.cells):
+            self.current = cell
+            box = cell.outer_bbox
+            if not frame.may_serve(box):
+                if record_distant:
+                    self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
+            elif frame.covers(box):
+                shared.append(i)
+            elif frame.mapping is not None:  # beyond the exposure's projected valid box
+                self.records[i].append(_partial_record(frame, box, header))
+            elif (near := rough_exposure_box(cell, header)) is not None:
+                alone[i] = near
+            elif record_distant:
+                self.records[i].append(input_record(header, InputStatus.NO_OVERLAP))
+        return shared, alone
 
     def _add_shared(
         self,
         exposure: Exposure,
-        item: Exposure | DescribedSource,
+        origin: tuple[int, int],
         shared: list[int],
         mapping: PixelMapping,
         bad_bits: int,
         contributions: list[Contribution],
     ) -> None:
         """Select ``exposure`` for the ``shared`` cells from one mapping (over their
-        bounding box, header pixels), and warp it once for all that accept it (appended
-        to ``contributions``)."""
-        # positions in the loaded pixels: a source's cutout starts at its origin
-        dx, dy = (0, 0) if isinstance(item, Exposure) else exposure.origin
+        bounding box, header pixels; ``origin``: the header pixel of the loaded pixels'
+        first), and warp it once for all that accept it (appended to ``contributions``)."""
+        dx, dy = origin
         x, y = mapping.x - dx, mapping.y - dy  # exact: integer shifts
-        accepted: list[tuple[int, Candidate, np.ndarray]] = []
+        accepted: list[_Member] = []
         for i in shared:
             cell = self.current = self.cells[i]
-            rows, cols = cell.outer_bbox.slices_in(mapping.box)
-            part = PixelMapping(
-                cell.outer_bbox,
-                x[rows, cols],
-                y[rows, cols],
-                mapping.area_ratio[rows, cols],
-                mapping.max_error,
-                mapping.grid_step,
-            )
+            part = _part(mapping, x, y, cell.outer_bbox)
             found = select_exposure(cell, exposure, self.config, bad_bits, mapping=part)
             if isinstance(found, Rejection):
                 self._reject(i, exposure, found)
@@ -275,34 +227,60 @@ class CellBlock:
                 self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
                 continue
             accepted.append((i, found, psf_stamp))
-        if not accepted:
+        if accepted:
+            box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in accepted])
+            union = _part(mapping, x, y, box)
+            self._contribute(exposure, accepted, union, bad_bits, contributions)
+
+    def _contribute(
+        self,
+        exposure: Exposure,
+        members: list[_Member],
+        mapping: PixelMapping,
+        bad_bits: int,
+        contributions: list[Contribution],
+    ) -> None:
+        """Warp ``exposure`` once over the cells of ``members`` (selected for it, each with
+        its PSF stamp, or None to draw it after the warp) through ``mapping``, positions of
+        the bounding box of their outer boxes; append the result to ``contributions`` and
+        record the cells that use it.
+
+        When that box's footprint is not all usable (off the valid box, or a hole too
+        large to interpolate), several cells are warped one by one instead, each through
+        its own selection mapping; a single cell is rejected (``masked_fraction``).
+        """
+        self.current = self.cells[members[0][0]]
+        warped = self._warp(members[0][1], mapping, exposure, bad_bits)
+        if warped is None:
+            if len(members) > 1:  # the box of all holds something none of them needs
+                for member in members:
+                    self._contribute(exposure, [member], member[1].mapping, bad_bits, contributions)
+            else:
+                i, found, _ = members[0]
+                status = Rejection(InputStatus.MASKED_FRACTION, found.overlap_fraction)
+                self._reject(i, exposure, status)
             return
-        self.current = self.cells[accepted[0][0]]
-        box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in accepted])
-        rows, cols = box.slices_in(mapping.box)
-        union = PixelMapping(
-            box,
-            x[rows, cols],
-            y[rows, cols],
-            mapping.area_ratio[rows, cols],
-            mapping.max_error,
-            mapping.grid_step,
-        )
-        warped = self._warp(accepted[0][1], union, exposure, bad_bits)
-        if warped is None:  # the box of all holds something none of them needs
-            for i, found, psf_stamp in accepted:
-                self._use(i, exposure, found, bad_bits, contributions, psf_stamp)
-            return
-        for i, found, psf_stamp in accepted:
+        used = []
+        for i, found, psf_stamp in members:
+            if psf_stamp is None:
+                try:
+                    psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.psf_size)
+                except PsfError:
+                    status = Rejection(InputStatus.BAD_PSF, found.overlap_fraction)
+                    self._reject(i, exposure, status)
+                    continue
             self._accept(i, exposure, found, psf_stamp)
-        contributions.append((box, *warped, [i for i, _, _ in accepted]))
+            used.append(i)
+        if used:
+            box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in members])
+            contributions.append((box, *warped, used))
 
     def _warp(
         self, found: Candidate, mapping: PixelMapping, exposure: Exposure, bad_bits: int
     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """``exposure`` warped over ``mapping``'s box, with what selection gave ``found``
-        (weight, flux scale); None if that box's footprint is not all usable (off the
-        valid box, or a hole too large to interpolate)."""
+        """``exposure`` warped over ``mapping``'s pixels, with what selection gave ``found``
+        (weight, flux scale); None if their footprint is not all usable (off the valid
+        box, or a hole too large to interpolate)."""
         footprint = footprint_box(mapping)
         valid = exposure.valid_box
         assert valid is not None and exposure.mask is not None  # filled by Exposure
@@ -314,41 +292,11 @@ class CellBlock:
             footprint=footprint,
             bad=(exposure.mask[footprint.slices] & bad_bits) != 0,
         )
-        pixels = exposure_planes(candidate, self.config, self.seed, bad_bits)
+        pixels = exposure_planes(candidate, self.config, self.settings.seed, bad_bits)
         if pixels is None:
             return None
-        mask = translated_mask(exposure, footprint, self.mask_bits)
+        mask = translated_mask(exposure, footprint, self.settings.mask_bits)
         return warped_contribution(candidate, pixels, mask, self.config.n_noise)
-
-    def _use(
-        self,
-        i: int,
-        exposure: Exposure,
-        found: Candidate | Rejection,
-        bad_bits: int,
-        contributions: list[Contribution],
-        psf_stamp: np.ndarray | None = None,
-    ) -> None:
-        """Warp ``exposure`` for cell ``i`` alone, if selection accepted it (appended to
-        ``contributions``)."""
-        if isinstance(found, Rejection):
-            self._reject(i, exposure, found)
-            return
-        pixels = exposure_planes(found, self.config, self.seed, bad_bits)
-        if pixels is None:  # a hole too large to interpolate
-            status = Rejection(InputStatus.MASKED_FRACTION, found.overlap_fraction)
-            self._reject(i, exposure, status)
-            return
-        if psf_stamp is None:
-            try:
-                psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.psf_size)
-            except PsfError:
-                self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
-                return
-        mask = translated_mask(exposure, found.footprint, self.mask_bits)
-        planes, warped_mask = warped_contribution(found, pixels, mask, self.config.n_noise)
-        self._accept(i, exposure, found, psf_stamp)
-        contributions.append((self.cells[i].outer_bbox, planes, warped_mask, [i]))
 
     def _accept(self, i: int, exposure: Exposure, found: Candidate, psf_stamp: np.ndarray) -> None:
         """Record ``exposure`` as used by cell ``i``, with its PSF (its pixels are added by
@@ -376,8 +324,27 @@ class CellBlock:
         for i, (cell, records) in enumerate(zip(self.cells, self.records, strict=True)):
             self.current = cell
             sums = self.sums.cell(i)
-            results.append(finish_cell(cell, sums, records, self.config, self.mask_bits))
+            results.append(finish_cell(cell, sums, records, self.config, self.settings.mask_bits))
         return results
+
+
+#: A cell selected for an input: its index in the block, the selection, its PSF stamp
+#: (None: not drawn yet).
+_Member = tuple[int, Candidate, "np.ndarray | None"]
+
+
+def _part(mapping: PixelMapping, x: np.ndarray, y: np.ndarray, box: Box) -> PixelMapping:
+    """The mapping of the pixels of ``box`` (inside ``mapping.box``) at positions ``x``,
+    ``y`` (``mapping``'s, shifted)."""
+    rows, cols = box.slices_in(mapping.box)
+    return PixelMapping(
+        box,
+        x[rows, cols],
+        y[rows, cols],
+        mapping.area_ratio[rows, cols],
+        mapping.max_error,
+        mapping.grid_step,
+    )
 
 
 def _partial_record(
@@ -395,7 +362,7 @@ def _partial_record(
 
 def build_cells(
     cells: Sequence[Cell],
-    exposures: Sequence[Input],
+    exposures: Sequence[Exposure | ExposureSource | DescribedSource | BuildInput],
     config: BuildConfig | None = None,
     seed: int = 0,
     *,
@@ -422,23 +389,25 @@ def build_cells(
     list of CellCoadd
         In the order of ``cells``.
     """
-    config = config or BuildConfig()
-    inputs = [describe(item) for item in exposures]
-    headers = [header_of(item) for item in inputs]
-    check_unique_inputs(headers)
-    check_mask_bits(headers, config)
-    mask_bits = mask_bits or MaskBits.union(header.mask_bits for header in headers)
-    band = band if band is not None else (headers[0].band if headers else None)
-    block = CellBlock(cells, config, seed, mask_bits, band, area)
-    frames = frames if frames is not None else [None] * len(inputs)
-    for item, frame in zip(inputs, frames, strict=True):
+    build = prepare(
+        cells,
+        exposures,
+        config or BuildConfig(),
+        seed,
+        mask_bits=mask_bits,
+        band=band,
+        area=area,
+        frames=frames,
+    )
+    block = CellBlock(cells, build.settings)
+    for item, frame in zip(build.inputs, build.frames, strict=True):
         block.add(item, frame)
     return block.finish()
 
 
 def build_cell(
     cell: Cell,
-    exposures: Sequence[Input],
+    exposures: Sequence[Exposure | ExposureSource | DescribedSource],
     config: BuildConfig | None = None,
     seed: int = 0,
     *,
@@ -483,7 +452,5 @@ __all__ = [
     "CellBlock",
     "build_cell",
     "build_cells",
-    "check_mask_bits",
-    "check_unique_inputs",
     "warped_contribution",
 ]

@@ -14,10 +14,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cellcoadd.builder.footprint import footprint_box
 from cellcoadd.builder.kernels.warp import warp_planes
+from cellcoadd.builder.mapping import footprint_box
 from cellcoadd.builder.psf import draw_exposure_psf
 from cellcoadd.builder.select import Candidate
+from cellcoadd.errors import CellCoaddFloatingPointError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
@@ -232,7 +233,7 @@ def finish_cell(
 def _check_finite(
     cell: Cell, planes: dict[str, np.ndarray], mask: np.ndarray, mask_bits: MaskBits
 ) -> None:
-    """Refuse (FloatingPointError) a coadd with non-finite pixels outside ``NO_DATA``.
+    """Refuse (CellCoaddFloatingPointError) a coadd with non-finite pixels outside ``NO_DATA``.
 
     Selection rejects inputs whose contribution could overflow float32 (``bad_pixels``),
     so this does not happen; if it did, the cell fails by name instead of being written.
@@ -242,9 +243,10 @@ def _check_finite(
     for name, plane in planes.items():
         bad = ~np.isfinite(plane) & covered
         if bad.any():
-            raise FloatingPointError(
+            raise CellCoaddFloatingPointError(
                 f"cell {cell.index} of tract {cell.tract}: {int(bad.sum())} non-finite "
-                f"{name} pixels outside NO_DATA"
+                f"{name} pixels outside NO_DATA",
+                cell=cell.index,
             )
 
 

@@ -9,6 +9,12 @@ that one mapping (:meth:`~cellcoadd.builder.mapping.PixelMapping.restricted`), s
 overlapping cells see the same positions bit for bit, whichever process builds them, and
 no WCS is evaluated per cell.
 
+Whether an exposure is near a cell is decided here, once: near when the cell's outer box
+overlaps the frame's region (:meth:`ExposureFrame.may_serve`; a patch build sends a block
+only the exposures near one of its cells, and a block asks again per cell). A cell near
+an exposure without a shared mapping then maps itself if
+:func:`rough_exposure_box` finds it near too.
+
 Conventions: 0-based tract pixels with centres at integers, half-open boxes.
 """
 
@@ -19,9 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 from astropy.wcs import WCS
 
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.mapping import PixelMapping, grid_mapping
 from cellcoadd.builder.select import WCS_ERRORS
 from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.sources import ExposureHeader
 
@@ -32,6 +40,12 @@ _POINTS_PER_SIDE = 33
 _REGION_MARGIN = 4
 
 _EMPTY = Box(x_start=0, x_stop=0, y_start=0, y_stop=0)
+
+#: Exposure pixels by which the kernel's footprint of the nine exactly mapped points of a
+#: cell's outer box is grown to decide whether an exposure is near the cell
+#: (:func:`rough_exposure_box`), for the mapping between the points, which they do not
+#: sample.
+NEAR_TOLERANCE = 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +71,11 @@ class ExposureFrame:
     def serves_nothing(self) -> bool:
         """Whether no pixel of the area can map into the exposure."""
         return self.region.is_empty
+
+    def may_serve(self, box: Box) -> bool:
+        """Whether some pixel of ``box`` (tract pixels) may map into the exposure's valid
+        box: the exposure is near ``box``. False means it certainly serves none of it."""
+        return not self.serves_nothing and box.overlaps(self.region)
 
     def covers(self, box: Box) -> bool:
         """Whether ``box`` (tract pixels) lies inside the shared mapping."""
@@ -93,6 +112,34 @@ def projected_valid_box(tract_wcs: WCS, exposure: Exposure | ExposureHeader) -> 
         y_start=int(np.floor(ty.min())) - _REGION_MARGIN,
         y_stop=int(np.ceil(ty.max())) + _REGION_MARGIN + 1,
     )
+
+
+def _rough_points(cell: Cell) -> tuple[np.ndarray, np.ndarray]:
+    """Corners, edge midpoints and centre of the cell's outer box (cell pixels)."""
+    ny, nx = cell.outer_bbox.shape
+    gx, gy = np.meshgrid([0.0, (nx - 1) / 2, nx - 1.0], [0.0, (ny - 1) / 2, ny - 1.0])
+    return gx.ravel(), gy.ravel()
+
+
+def rough_exposure_box(cell: Cell, exposure: Exposure | ExposureHeader) -> Box | None:
+    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far).
+
+    The kernel's footprint of the points, grown by :data:`NEAR_TOLERANCE`: the decision
+    whether an exposure is near a cell that has no shared mapping of it. Near exposures
+    are then selected on the cell's full mapping (:func:`select_exposure`).
+    """
+    ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
+    try:
+        ex, ey = exposure.wcs.all_world2pix(ra, dec, 0, quiet=True)
+    except WCS_ERRORS:  # distortion solutions can fail far from the detector
+        return None
+    if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
+        return None
+    x_start, x_stop = WARP_KERNEL.tap_range(ex.min(), ex.max())
+    y_start, y_stop = WARP_KERNEL.tap_range(ey.min(), ey.max())
+    found = Box(x_start=x_start, x_stop=x_stop, y_start=y_start, y_stop=y_stop)
+    found = found.grow(NEAR_TOLERANCE)
+    return found if found.overlaps(Box.from_shape(exposure.shape)) else None
 
 
 def exposure_frame(
@@ -134,4 +181,10 @@ def exposure_frame(
     return ExposureFrame(region, mapping)
 
 
-__all__ = ["ExposureFrame", "exposure_frame", "projected_valid_box"]
+__all__ = [
+    "NEAR_TOLERANCE",
+    "ExposureFrame",
+    "exposure_frame",
+    "projected_valid_box",
+    "rough_exposure_box",
+]

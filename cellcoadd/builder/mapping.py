@@ -7,6 +7,8 @@ Evaluating it at every pixel of every cell for every exposure is slow, so
 checks the interpolant against the exact chain at points that were not used for it
 (the midpoints between grid nodes). The grid is refined until the checked error is
 within the tolerance, with exact evaluation at every pixel as the last resort.
+:func:`footprint_box` gives the exposure pixels the resampling kernel reads for mapped
+pixels: what an exposure must hold for a cell to be edge-free.
 
 Conventions: 0-based pixel coordinates with pixel centres at integers (see
 :mod:`cellcoadd.geometry.box`); errors are Euclidean distances in exposure pixels.
@@ -17,13 +19,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
-import numba
 import numpy as np
 from astropy.wcs import WCS
 from astropy.wcs.wcs import NoConvergence
 
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL, KernelDescriptor
+from cellcoadd.builder.kernels.node_interpolation import interpolate_nodes
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, GeometryError, MappingError
 from cellcoadd.geometry.box import Box
 
 # Inverse-SIP iterations stop at this step (exposure px): far below any tolerance used here
@@ -129,7 +133,9 @@ class PixelMapping:
         the same grid values with the same weights, so any sub-box gives the same numbers.
         """
         if not self.box.contains_box(box):
-            raise ValueError(f"{box} is not inside the mapped box {self.box}")
+            raise GeometryError(
+                f"{box} is not inside the mapped box {self.box}", value=box, allowed=self.box
+            )
         rows = slice(box.y_start - self.box.y_start, box.y_stop - self.box.y_start)
         cols = slice(box.x_start - self.box.x_start, box.x_stop - self.box.x_start)
 
@@ -149,6 +155,52 @@ class PixelMapping:
         if _Interpolated.is_deferred(self, "x") and _Interpolated.is_deferred(self, "y"):
             return True  # interpolated from an accepted grid, whose values are all finite
         return bool(np.isfinite(self.x).all() and np.isfinite(self.y).all())
+
+
+class PixelPositions(Protocol):
+    """Exposure pixel positions ``x`` and ``y`` of some coadd pixels: a
+    :class:`PixelMapping` or a subset of its pixels."""
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def y(self) -> np.ndarray: ...
+
+
+def footprint_box(mapping: PixelPositions, kernel: KernelDescriptor = WARP_KERNEL) -> Box:
+    """Exposure pixels touched by the resampling kernel taps of all mapped pixels.
+
+    Taps run from ``floor(x) + kernel.first_offset`` to ``floor(x) + kernel.last_offset``
+    (Lanczos-3: ``floor(x) - 2 .. floor(x) + 3``), so the box is
+    ``[min floor(x) - half_width + 1, max floor(x) + half_width + 1)`` and likewise in y.
+    An exposure can be resampled without edge effects iff its valid box contains this.
+
+    Parameters
+    ----------
+    mapping : PixelMapping
+        Or any object with exposure pixel coordinate arrays ``x`` and ``y`` (e.g. a
+        subset of a mapping's pixels).
+    kernel : KernelDescriptor
+        The resampling kernel (default: the builder's).
+
+    Raises
+    ------
+    MappingError
+        If there are no pixels or some do not map into the exposure (non-finite).
+    """
+    x = np.asarray(mapping.x, dtype=np.float64)
+    y = np.asarray(mapping.y, dtype=np.float64)
+    if x.size == 0:
+        raise MappingError("an empty mapping has no footprint")
+    # floor is monotonic: the floor of the extremes is the extreme of the floors; a NaN
+    # propagates to the extremes, an infinity stays one
+    x_min, x_max, y_min, y_max = x.min(), x.max(), y.min(), y.max()
+    if not np.isfinite([x_min, x_max, y_min, y_max]).all():
+        raise MappingError("some pixels do not map into the exposure")
+    x_start, x_stop = kernel.tap_range(x_min, x_max)
+    y_start, y_stop = kernel.tap_range(y_min, y_max)
+    return Box(x_start=x_start, x_stop=x_stop, y_start=y_start, y_stop=y_stop)
 
 
 def _snap_unit_area(area_ratio: np.ndarray) -> None:
@@ -261,38 +313,6 @@ def _exact_mapping(coadd_wcs: WCS, box: Box, exposure_wcs: WCS) -> PixelMapping:
     return _frozen_mapping(box, x_exp, y_exp, area_ratio, 0.0, 0)
 
 
-@numba.njit(cache=True)
-def _interpolate_nodes(
-    node_values: np.ndarray,
-    rows_first: np.ndarray,
-    rows_weights: np.ndarray,
-    cols_first: np.ndarray,
-    cols_weights: np.ndarray,
-) -> np.ndarray:
-    """Separable interpolation of ``node_values`` (nodes y, nodes x): rows, then columns."""
-    n_rows, n_cols = rows_first.size, cols_first.size
-    partial = np.empty((n_rows, node_values.shape[1]))
-    for i in range(n_rows):
-        j = rows_first[i]
-        for k in range(node_values.shape[1]):
-            partial[i, k] = (
-                rows_weights[i, 0] * node_values[j, k] + rows_weights[i, 1] * node_values[j + 1, k]
-            ) + (
-                rows_weights[i, 2] * node_values[j + 2, k]
-                + rows_weights[i, 3] * node_values[j + 3, k]
-            )
-    out = np.empty((n_rows, n_cols))
-    for i in range(n_rows):
-        for col in range(n_cols):
-            k = cols_first[col]
-            out[i, col] = (
-                cols_weights[col, 0] * partial[i, k] + cols_weights[col, 1] * partial[i, k + 1]
-            ) + (
-                cols_weights[col, 2] * partial[i, k + 2] + cols_weights[col, 3] * partial[i, k + 3]
-            )
-    return out
-
-
 def _nodes_of(values: np.ndarray) -> np.ndarray:
     """The values at the grid nodes, ``values[::2, ::2]`` of the dense grid (its odd indices
     are the check points between nodes), as a contiguous array of their own."""
@@ -301,7 +321,7 @@ def _nodes_of(values: np.ndarray) -> np.ndarray:
 
 def _from_nodes(nodes: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
     """Interpolate from the values at the grid nodes to the positions of ``rows`` x ``cols``."""
-    return _interpolate_nodes(nodes, rows.first, rows.weights, cols.first, cols.weights)
+    return interpolate_nodes(nodes, rows.first, rows.weights, cols.first, cols.weights)
 
 
 def _interpolate(values: np.ndarray, rows: _CubicBasis, cols: _CubicBasis) -> np.ndarray:
@@ -467,9 +487,13 @@ def grid_mapping(
     evaluate every pixel exactly (no verified grid; part of the box off the exposure's
     projection), which for a large box is slow and memory-hungry."""
     if not tolerance > 0 or not area_tolerance > 0:
-        raise ValueError("tolerance and area_tolerance must be positive")
+        raise CellCoaddValueError(
+            "tolerance and area_tolerance must be positive", value=(tolerance, area_tolerance)
+        )
     if grid_step < 1:
-        raise ValueError(f"grid_step must be positive, got {grid_step}")
+        raise CellCoaddRangeError(
+            f"grid_step must be positive, got {grid_step}", value=grid_step, low=1
+        )
     if box.is_empty:
         empty = np.zeros(box.shape)
         return _frozen_mapping(box, empty, empty.copy(), empty.copy(), 0.0, 0)

@@ -1,7 +1,8 @@
 """Coadding every cell of a patch, in parallel on any ``concurrent.futures`` executor.
 
 Each exposure is mapped once onto the patch (:func:`~cellcoadd.builder.exposure_frame.
-exposure_frame`, from its header, here); the cells are then built in blocks of
+exposure_frame`, from its header, here, in the set-up every build shares:
+:func:`~cellcoadd.builder.inputs.prepare`); the cells are then built in blocks of
 neighbours, each block an independent task that receives only the exposures near it and
 warps each of them once for all its cells (:class:`~cellcoadd.builder.cell.CellBlock`). A
 cell's result depends only on its inputs, their mapping over the patch and the seed, not
@@ -21,8 +22,9 @@ traceback.
 from __future__ import annotations
 
 import contextlib
+import functools
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import (
     BrokenExecutor,
     Executor,
@@ -30,28 +32,22 @@ from concurrent.futures import (
     ProcessPoolExecutor,
     as_completed,
 )
-from dataclasses import dataclass
 from typing import Any
 
 from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
-from cellcoadd.builder.cell import CellBlock, check_mask_bits, check_unique_inputs
+from cellcoadd.builder.cell import CellBlock
 from cellcoadd.builder.executors import dask_client, resolve_executor
-from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
-from cellcoadd.builder.select import exposures_near_cells
+from cellcoadd.builder.exposure_frame import ExposureFrame
+from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.errors import CellBuildError
-from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
-from cellcoadd.model.inputs import check_band_name
-from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
-from cellcoadd.model.sources import DescribedSource, ExposureSource, describe, header_of
-
-Input = Exposure | DescribedSource
+from cellcoadd.model.sources import DescribedSource, ExposureSource
 
 #: Largest block of cells built together (per side): bounds a block's memory, e.g. 64
 #: cells of 250 x 250 px with 3 noise realizations hold ~190 MB of float64 sums.
@@ -60,31 +56,29 @@ MAX_BLOCK_SIDE = 8
 # The inputs of the build and their frames, installed once in each process of a pool this
 # module creates (its initializer), so that block tasks carry input indices instead of
 # pixels. Per-process transport state only: every result depends on the task's arguments.
-_pool_inputs: list[tuple[Input, ExposureFrame]] = []
+_pool_inputs: list[tuple[BuildInput, ExposureFrame | None]] = []
 
 
-def _install_inputs(inputs: list[tuple[Input, ExposureFrame]]) -> None:
+def _install_inputs(inputs: list[tuple[BuildInput, ExposureFrame | None]]) -> None:
     _pool_inputs[:] = inputs
 
 
 #: One task: the cells of a block and their candidate inputs (with their frames), or the
 #: indices of those in the pool's table.
-Task = tuple[list[Cell], Sequence[tuple[Input, ExposureFrame] | int]]
+Task = tuple[list[Cell], Sequence[tuple[BuildInput, ExposureFrame | None] | int]]
+#: What runs one task: its cells and candidates in, their coadds out.
+Runner = Callable[[list[Cell], Sequence[Any]], list[CellCoadd]]
 
 
 def _build_block(
+    settings: BuildSettings,
     cells: list[Cell],
-    candidates: Sequence[tuple[Input, ExposureFrame] | int],
-    config: BuildConfig,
-    seed: int,
-    mask_bits: MaskBits,
-    band: str,
-    area: Box,
+    candidates: Sequence[tuple[BuildInput, ExposureFrame | None] | int],
 ) -> list[CellCoadd]:
     """Build the cells of one block from their candidate inputs (or indices of them)."""
     block = None
     try:
-        block = CellBlock(cells, config, seed, mask_bits, band, area, record_distant=False)
+        block = CellBlock(cells, settings)
         for candidate in candidates:
             item, frame = _pool_inputs[candidate] if isinstance(candidate, int) else candidate
             block.add(item, frame)
@@ -120,22 +114,6 @@ def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuild
     )
 
 
-@dataclass(frozen=True)
-class _Settings:
-    """What every block of one patch build shares."""
-
-    config: BuildConfig
-    seed: int
-    mask_bits: MaskBits
-    band: str
-    area: Box
-
-    def run(self, cells: list[Cell], candidates: Sequence[Any]) -> list[CellCoadd]:
-        return _build_block(
-            cells, candidates, self.config, self.seed, self.mask_bits, self.band, self.area
-        )
-
-
 def _collect(
     cells: list[Cell], built: list[CellCoadd], results: dict[tuple[int, int], CellCoadd]
 ) -> None:
@@ -146,14 +124,14 @@ def _collect(
 def _run_on(
     pool: Executor,
     tasks: Sequence[Task],
-    settings: _Settings,
+    run: Runner,
     results: dict[tuple[int, int], CellCoadd],
     bar: tqdm,
 ) -> None:
-    """Build the blocks of ``tasks`` on ``pool`` into ``results``; on the first failure,
-    cancel what has not started and raise a CellBuildError naming the cell."""
+    """Build the blocks of ``tasks`` with ``run`` on ``pool`` into ``results``; on the first
+    failure, cancel what has not started and raise a CellBuildError naming the cell."""
     submitted: list[tuple[Future, list[Cell]]] = [
-        (pool.submit(settings.run, cells, candidates), cells) for cells, candidates in tasks
+        (pool.submit(run, cells, candidates), cells) for cells, candidates in tasks
     ]
     blocks = dict(submitted)
     try:
@@ -178,13 +156,13 @@ def _run_on(
 def _run_on_dask(
     client: Any,
     tasks: Sequence[Task],
-    inputs: list[tuple[Input, ExposureFrame]],
-    settings: _Settings,
+    inputs: list[tuple[BuildInput, ExposureFrame | None]],
+    run: Runner,
     results: dict[tuple[int, int], CellCoadd],
     bar: tqdm,
 ) -> None:
-    """Build the blocks of ``tasks`` (cells, indices of their candidate inputs) on the
-    dask cluster of ``client`` into ``results``; on the first failure, cancel the blocks
+    """Build the blocks of ``tasks`` (cells, indices of their candidate inputs) with ``run``
+    on the dask cluster of ``client`` into ``results``; on the first failure, cancel the blocks
     not yet built and raise a CellBuildError naming the cell.
 
     Every input is sent once to the workers, then copied to all of them; a task's
@@ -202,7 +180,7 @@ def _run_on_dask(
     try:
         for cells, indices in tasks:
             candidates = [table[i] for i in indices]
-            future = client.submit(settings.run, cells, candidates, pure=False)
+            future = client.submit(run, cells, candidates, pure=False)
             pending[future.key] = (future, cells)
         _replicate(client, table)
         for future in dask_as_completed([future for future, _ in pending.values()]):
@@ -317,8 +295,8 @@ def build_patch(
     ------
     CellBuildError
         If any cell fails; names the cell and includes the original traceback.
-    ValueError
-        On duplicate ``(visit, detector)`` inputs or mixed bands.
+    InputError
+        On duplicate ``(visit, detector)`` inputs or mixed bands (a ValueError too).
 
     Notes
     -----
@@ -336,31 +314,14 @@ def build_patch(
     environment of ``dask worker``). Results are identical either way.
     """
     config = config or BuildConfig()
-    inputs = [describe(item) for item in exposures]  # a source's header is read once, here
-    headers = [header_of(item) for item in inputs]
-    check_unique_inputs(headers)
-    bands = sorted({header.band for header in headers})
-    if not bands:
-        raise ValueError("build_patch needs at least one exposure")
-    if len(bands) > 1:
-        raise ValueError(f"exposures of several bands given ({bands}); build one band at a time")
-    try:
-        check_band_name(bands[0])
-    except ValueError as err:
-        raise ValueError(f"band {bands[0]!r} cannot be recorded in a coadd: {err}") from None
-    check_mask_bits(headers, config)  # before any work
-    mask_bits = MaskBits.union(header.mask_bits for header in headers)
     cells = patch.cells
-    near = exposures_near_cells(cells, headers)
-    area = patch.outer_bbox
-    tract_wcs = patch.tract.wcs
-    # each exposure mapped once onto the patch, from its header: shared by every block;
-    # exposures covering the same part of the patch share their interpolation weights
-    grids: dict = {}
-    framed = [
-        (item, exposure_frame(tract_wcs, area, header, config.mapping_tolerance, grids))
-        for item, header in zip(inputs, headers, strict=True)
-    ]
+    build = prepare(
+        cells, exposures, config, seed, one_band=True, area=patch.outer_bbox, record_distant=False
+    )
+    band = build.settings.band
+    assert band is not None  # one_band
+    # each exposure mapped once onto the patch, from its header: shared by every block
+    framed = [(item, frame) for item, frame in zip(build.inputs, build.frames, strict=True)]
     client = pool = None
     if executor is None and scheduler is not None:
         client, release = dask_client(scheduler)
@@ -371,26 +332,25 @@ def build_patch(
     # a pool made here holds the inputs and dask receives them once: tasks name them by
     # index; a given executor gets the inputs with each task
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
-    by_index = {cell.index: indices for cell, indices in zip(cells, near, strict=True)}
     tasks: list[Task] = []
-    sources = any(isinstance(item, DescribedSource) for item in inputs)
+    sources = any(item.source is not None for item in build.inputs)
     for block in blocks_of(cells, _task_count(pool, client, workers, sources)):
-        indices = sorted({i for cell in block for i in by_index[cell.index]})
+        indices = build.candidates(block)  # only these can change the block's cells
         tasks.append(
             (block, indices if owned or client is not None else [framed[i] for i in indices])
         )
-    settings = _Settings(config, seed, mask_bits, bands[0], area)
+    run = functools.partial(_build_block, build.settings)
     results: dict[tuple[int, int], CellCoadd] = {}
     bar = tqdm(total=len(cells), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if client is not None:
-            _run_on_dask(client, tasks, framed, settings, results, bar)
+            _run_on_dask(client, tasks, framed, run, results, bar)
         elif pool is None:
             for block, candidates in tasks:
-                _collect(block, settings.run(block, candidates), results)
+                _collect(block, run(block, candidates), results)
                 bar.update(len(block))
         else:
-            _run_on(pool, tasks, settings, results, bar)
+            _run_on(pool, tasks, run, results, bar)
     finally:
         bar.close()
         if release is not None:
@@ -400,10 +360,10 @@ def build_patch(
         tract=patch.tract.id,
         tract_center=patch.tract.center,
         patch=patch.index,
-        band=bands[0],
+        band=band,
         units=config.units,
         zero_point=config.zero_point,
-        mask_bits=mask_bits,
+        mask_bits=build.settings.mask_bits,
         build_config=config,
         software_version=__version__,
         format_version=FORMAT_VERSION,

@@ -8,20 +8,17 @@ exposure considered gets an :class:`InputRecord` saying what happened to it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from astropy.wcs.wcs import NoConvergence
 
-from cellcoadd.builder.footprint import footprint_box
-from cellcoadd.builder.mapping import PixelMapping, map_box
+from cellcoadd.builder.mapping import PixelMapping, footprint_box, map_box
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputStatus
-from cellcoadd.model.sources import ExposureHeader
 
 # Range of scaled background variances the float32 coadd planes can represent.
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)
@@ -60,90 +57,6 @@ class Candidate:
     overlap_fraction: float
 
 
-def _rough_points(cell: Cell) -> tuple[np.ndarray, np.ndarray]:
-    """Corners, edge midpoints and centre of the cell's outer box (cell pixels)."""
-    ny, nx = cell.outer_bbox.shape
-    gx, gy = np.meshgrid([0.0, (nx - 1) / 2, nx - 1.0], [0.0, (ny - 1) / 2, ny - 1.0])
-    return gx.ravel(), gy.ravel()
-
-
-def rough_exposure_box(cell: Cell, exposure: Exposure | ExposureHeader) -> Box | None:
-    """Exposure pixels near the cell's outer box, from 9 exactly mapped points (None: far)."""
-    ra, dec = cell.wcs.all_pix2world(*_rough_points(cell), 0)
-    try:
-        ex, ey = exposure.wcs.all_world2pix(ra, dec, 0, quiet=True)
-    except WCS_ERRORS:  # distortion solutions can fail far from the detector
-        return None
-    if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
-        return None
-    found = Box(
-        x_start=int(np.floor(ex.min())) - 3,
-        x_stop=int(np.floor(ex.max())) + 5,
-        y_start=int(np.floor(ey.min())) - 3,
-        y_stop=int(np.floor(ey.max())) + 5,
-    )
-    return found if found.overlaps(Box.from_shape(exposure.shape)) else None
-
-
-def exposures_near_cells(
-    cells: Sequence[Cell],
-    exposures: Sequence[Exposure | ExposureHeader],
-    margin: float = 16.0,
-) -> list[list[int]]:
-    """For each cell, the indices of the exposures that may be near it, in one pass.
-
-    A superset of the exposures for which :func:`rough_exposure_box` is not None, meant as
-    a cheap first cut before that exact test (which, like the build, then runs once per
-    cell and candidate, e.g. in the worker building the cell). The rough points of all
-    cells go through each exposure's inverse WCS in one call instead of one call per cell
-    and exposure; ``margin`` (exposure px) absorbs the differences an iterative SIP
-    inverse shows on another batch of points (below its 1e-4 px tolerance when it
-    converges). Cells whose points do not converge or are not finite keep the exposure.
-
-    Returns
-    -------
-    list of list of int
-        ``result[i]``: indices into ``exposures`` for ``cells[i]``, in increasing order.
-    """
-    points = [cell.wcs.all_pix2world(*_rough_points(cell), 0) for cell in cells]
-    n_points = len(points[0][0]) if points else 0
-    ra = np.concatenate([p[0] for p in points]) if points else np.empty(0)
-    dec = np.concatenate([p[1] for p in points]) if points else np.empty(0)
-    near: list[list[int]] = [[] for _ in cells]
-    for k, exposure in enumerate(exposures):
-        keep = np.ones(len(cells), dtype=bool)
-        try:
-            ex, ey = exposure.wcs.all_world2pix(ra, dec, 0)
-            unsure = np.zeros(ra.size, dtype=bool)
-        except NoConvergence as failure:
-            solution = np.asarray(failure.best_solution, dtype=np.float64)
-            ex, ey = solution[:, 0], solution[:, 1]
-            unsure = np.zeros(ra.size, dtype=bool)
-            for flagged in (failure.divergent, failure.slow_conv):
-                if flagged is not None:
-                    unsure[np.asarray(flagged)] = True
-        except WCS_ERRORS:  # any other WCS failure: the exact test decides for every cell
-            ex = ey = None
-        if ex is not None:
-            ex = np.asarray(ex).reshape(len(cells), n_points)
-            ey = np.asarray(ey).reshape(len(cells), n_points)
-            # numpy stub: any(axis=1) of a 2-D array is typed np.bool | NDArray; an array here
-            unsure = unsure.reshape(len(cells), n_points).any(axis=1)  # type: ignore[assignment]
-            unsure |= ~(np.isfinite(ex).all(axis=1) & np.isfinite(ey).all(axis=1))
-            ny, nx = exposure.shape
-            with np.errstate(invalid="ignore"):
-                close = (
-                    (ex.min(axis=1) - margin < nx + 3)
-                    & (ex.max(axis=1) + margin > -5)
-                    & (ey.min(axis=1) - margin < ny + 3)
-                    & (ey.max(axis=1) + margin > -5)
-                )
-            keep = unsure | close
-        for i in np.flatnonzero(keep):
-            near[i].append(k)
-    return near
-
-
 def select_exposure(
     cell: Cell,
     exposure: Exposure,
@@ -158,7 +71,8 @@ def select_exposure(
     Returns a :class:`Candidate` (used) or a :class:`Rejection` with the reason and the
     overlap fraction when known. ``grid_cache``: a dict shared by the calls for one cell,
     reusing its mapping grids (see :func:`map_box`). Far exposures are best left out
-    first with the cheap :func:`rough_exposure_box`, as
+    first with the cheap
+    :func:`~cellcoadd.builder.exposure_frame.rough_exposure_box`, as
     :func:`cellcoadd.builder.cell.build_cell` does; here
     they end as ``no_overlap`` too, after the mapping. ``mapping``: the cell's pixels
     already mapped into ``exposure`` (e.g. a part of an exposure's mapping over a whole

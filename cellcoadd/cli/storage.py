@@ -12,7 +12,9 @@ import click
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.io import api
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.inputs import REJECTION_REASONS
+from cellcoadd.model.patch_coadd import PatchMetadata
 from cellcoadd.model.schemas import write_schemas
 
 _ERRORS = (CellCoaddFormatError, OSError, ValueError)
@@ -49,9 +51,6 @@ def patch_summary(path: str) -> dict[str, Any]:
         )
     used = [entry["used"] for entry in per_cell]
     totals = Counter(str(status) for status in table["status"])
-    planes = ["image", "mask", "variance", "mfrac"]
-    planes += [f"noise ({meta.n_noise} realizations)"] if meta.n_noise else []
-    planes += [f"psf ({meta.psf_size}x{meta.psf_size})", "inputs"]
     summary: dict[str, Any] = {
         "file": os.fspath(path),
         "format": layout,
@@ -65,7 +64,7 @@ def patch_summary(path: str) -> dict[str, Any]:
         "zero_point": meta.zero_point,
         "n_noise": meta.n_noise,
         "psf_size": meta.psf_size,
-        "planes": planes,
+        "planes": stored_planes(meta),
         "cells": {
             "total": len(indices),
             "inner": sum(index in inner for index in indices),
@@ -88,6 +87,22 @@ def patch_summary(path: str) -> dict[str, Any]:
     if layout_version is not None:  # e.g. the VERSION of an lsst.cell_coadds file
         summary["layout_version"] = layout_version
     return summary
+
+
+def stored_planes(meta: PatchMetadata) -> list[str]:
+    """What each cell of a patch file stores, for ``cellcoadd info``: the planes of
+    :data:`~cellcoadd.model.planes.PLANES` (with their number of realizations or stamp size;
+    per-realization planes left out when there are none), then the inputs table."""
+    described = []
+    for spec in cell_planes.PLANES:
+        if spec.per_realization:
+            if meta.n_noise:
+                described.append(f"{spec.name} ({meta.n_noise} realizations)")
+        elif spec.stamp:
+            described.append(f"{spec.name} ({meta.psf_size}x{meta.psf_size})")
+        else:
+            described.append(spec.name)
+    return [*described, cell_planes.INPUTS]
 
 
 def _format_size(n_bytes: int) -> str:

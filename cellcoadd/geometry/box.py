@@ -16,6 +16,8 @@ from collections.abc import Iterable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
+from cellcoadd.errors import GeometryError
+
 
 class Box(BaseModel):
     """A frozen, half-open integer pixel box.
@@ -46,7 +48,7 @@ class Box(BaseModel):
     @model_validator(mode="after")
     def _check_order(self) -> Box:
         if self.x_stop < self.x_start or self.y_stop < self.y_start:
-            raise ValueError(
+            raise GeometryError(
                 f"box stops must not precede starts: x [{self.x_start}, {self.x_stop}), "
                 f"y [{self.y_start}, {self.y_stop})"
             )
@@ -83,7 +85,7 @@ class Box(BaseModel):
     def slices_in(self, outer: Box) -> tuple[slice, slice]:
         """Slices of this box inside an array that covers ``outer`` (which must contain it)."""
         if not outer.contains_box(self):
-            raise ValueError(f"{self} is not inside {outer}")
+            raise GeometryError(f"{self} is not inside {outer}", value=self, allowed=outer)
         return (
             slice(self.y_start - outer.y_start, self.y_stop - outer.y_start),
             slice(self.x_start - outer.x_start, self.x_stop - outer.x_start),
@@ -120,7 +122,7 @@ class Box(BaseModel):
         """The smallest box holding every one of ``boxes`` (at least one)."""
         boxes = list(boxes)
         if not boxes:
-            raise ValueError("no boxes to enclose")
+            raise GeometryError("no boxes to enclose")
         return cls(
             x_start=min(b.x_start for b in boxes),
             x_stop=max(b.x_stop for b in boxes),

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddKeyError
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 
@@ -19,7 +20,7 @@ def _column(catalog: Any, name: str) -> np.ndarray:
     try:
         return np.asarray(catalog[name], dtype=float)
     except (KeyError, ValueError, IndexError) as err:
-        raise KeyError(f"catalog has no column {name!r}") from err
+        raise CellCoaddKeyError(f"catalog has no column {name!r}", value=name) from err
 
 
 def flag_unique(

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from cellcoadd.errors import ConfigError
+
 
 class SkyMapConfig(BaseModel):
     """Sizes that define the tract -> patch -> cell hierarchy (frozen, stored in every file).
@@ -48,18 +50,22 @@ class SkyMapConfig(BaseModel):
     @model_validator(mode="after")
     def _check_consistency(self) -> SkyMapConfig:
         if self.cell_border > self.cell_inner:
-            raise ValueError(
+            raise ConfigError(
                 f"cell_border ({self.cell_border} px) must not exceed cell_inner "
-                f"({self.cell_inner} px): a cell would overlap beyond its nearest neighbours"
+                f"({self.cell_inner} px): a cell would overlap beyond its nearest neighbours",
+                value=self.cell_border,
+                allowed=(0, self.cell_inner),
             )
         if self.patch_border_cells > self.cells_per_patch:
-            raise ValueError(
+            raise ConfigError(
                 f"patch_border_cells ({self.patch_border_cells}) must not exceed "
                 f"cells_per_patch ({self.cells_per_patch})"
             )
         if self.tract_pixels > 2_000_000:
-            raise ValueError(
-                f"a tract of {self.tract_pixels} pixels on a side is implausibly large"
+            raise ConfigError(
+                f"a tract of {self.tract_pixels} pixels on a side is implausibly large",
+                value=self.tract_pixels,
+                allowed=(1, 2_000_000),
             )
         return self
 

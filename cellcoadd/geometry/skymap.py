@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
+from cellcoadd.errors import CellCoaddIndexError, CellCoaddValueError, ConfigError, GeometryError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import (
     NearestCenterRegion,
@@ -45,7 +46,9 @@ class SkyMapSpec(BaseModel):
     def _check_centers(cls, centers: tuple[tuple[float, float], ...]) -> tuple:
         for ra, dec in centers:
             if not (math.isfinite(ra) and -90.0 <= dec <= 90.0):
-                raise ValueError(f"tract centre ({ra}, {dec}) is not a valid (ra, dec) in deg")
+                raise GeometryError(
+                    f"tract centre ({ra}, {dec}) is not a valid (ra, dec) in deg", value=(ra, dec)
+                )
         return tuple((float(ra) % 360.0, float(dec)) for ra, dec in centers)
 
 
@@ -76,7 +79,7 @@ class SkyMap:
         box; positions outside every tract box belong to no tract (``locate`` gives -1).
         """
         if len(centers_deg) == 0:
-            raise ValueError("from_centers needs at least one tract centre")
+            raise GeometryError("from_centers needs at least one tract centre")
         spec = SkyMapSpec(kind="centers", config=config or SkyMapConfig(), centers=centers_deg)
         tracts = [
             Tract(
@@ -158,10 +161,11 @@ class SkyMap:
                 and y.min() >= lo
                 and y.max() <= hi
             ):
-                raise ValueError(
+                raise ConfigError(
                     f"n_rings={cfg.n_rings} gives rings {180.0 / (cfg.n_rings + 1):.3f} deg wide, "
                     f"too wide for tracts of {cfg.tract_size_deg:.3f} deg with "
-                    f"tract_overlap={cfg.tract_overlap} deg: increase n_rings or the tract size"
+                    f"tract_overlap={cfg.tract_overlap} deg: increase n_rings or the tract size",
+                    value=cfg.n_rings,
                 )
 
     # -- serialisation ------------------------------------------------------------
@@ -182,7 +186,11 @@ class SkyMap:
 
     def __getitem__(self, tract_id: int) -> Tract:
         if not 0 <= tract_id < len(self._tracts):
-            raise IndexError(f"tract {tract_id} is not in this sky map ({len(self)} tracts)")
+            raise CellCoaddIndexError(
+                f"tract {tract_id} is not in this sky map ({len(self)} tracts)",
+                value=tract_id,
+                allowed=(0, len(self._tracts)),
+            )
         return self._tracts[tract_id]
 
     def __iter__(self) -> Iterator[Tract]:
@@ -222,7 +230,7 @@ class SkyMap:
         ra = np.mod(np.atleast_1d(np.asarray(ra, dtype=float)), 360.0)
         dec = np.atleast_1d(np.asarray(dec, dtype=float))
         if ra.shape != dec.shape:
-            raise ValueError(f"ra and dec shapes differ: {ra.shape} vs {dec.shape}")
+            raise CellCoaddValueError(f"ra and dec shapes differ: {ra.shape} vs {dec.shape}")
         out = np.full(ra.shape, -1, dtype=LOCATION_DTYPE)
         out["x"] = np.nan
         out["y"] = np.nan

@@ -18,6 +18,7 @@ import numpy as np
 from astropy.wcs import WCS
 from numpy.typing import ArrayLike
 
+from cellcoadd.errors import CellCoaddIndexError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import InnerRegion
@@ -198,7 +199,11 @@ class Tract:
         """Patch ``(px, py)``, each in ``[0, patches_per_tract)``."""
         n = self.config.patches_per_tract
         if not (0 <= px < n and 0 <= py < n):
-            raise IndexError(f"patch ({px}, {py}) is outside tract {self.id} ({n} x {n} patches)")
+            raise CellCoaddIndexError(
+                f"patch ({px}, {py}) is outside tract {self.id} ({n} x {n} patches)",
+                value=(px, py),
+                allowed=(0, n),
+            )
         return Patch(tract=self, index=(int(px), int(py)))
 
     @property
@@ -215,7 +220,11 @@ class Tract:
         cfg = self.config
         lo, hi = -cfg.patch_border_cells, cfg.cells_per_tract + cfg.patch_border_cells
         if not (lo <= cx < hi and lo <= cy < hi):
-            raise IndexError(f"cell ({cx}, {cy}) is outside tract {self.id} (range [{lo}, {hi}))")
+            raise CellCoaddIndexError(
+                f"cell ({cx}, {cy}) is outside tract {self.id} (range [{lo}, {hi}))",
+                value=(cx, cy),
+                allowed=(lo, hi),
+            )
         size = cfg.cell_inner
         inner = Box(
             x_start=cx * size, x_stop=(cx + 1) * size, y_start=cy * size, y_stop=(cy + 1) * size

@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from astropy.wcs import WCS
 
+from cellcoadd.errors import CellCoaddValueError
+
 if TYPE_CHECKING:
     import galsim
 
@@ -134,7 +136,7 @@ def shifted_wcs(
     from astropy.wcs import Sip
 
     if wcs.cpdis1 is not None or wcs.cpdis2 is not None or wcs.det2im1 is not None:
-        raise ValueError("cannot shift a WCS with lookup-table distortions")
+        raise CellCoaddValueError("cannot shift a WCS with lookup-table distortions")
     out = wcs.deepcopy()
     out.wcs.crpix = out.wcs.crpix - np.array([x_start, y_start], dtype=float)
     if from_canonical:

@@ -27,6 +27,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
 
+from cellcoadd.errors import (
+    CellCoaddIncompatibleValuesError,
+    CellCoaddTypeError,
+    CellCoaddValueError,
+)
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
 from cellcoadd.io._files.read_checks import reading_errors
@@ -37,6 +42,7 @@ from cellcoadd.io.coadd.fits_format import FitsCoaddFile, check_fits_path, write
 from cellcoadd.io.coadd.hdf5_format import Hdf5CoaddFile, write_hdf5
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
 from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
+from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 
@@ -66,8 +72,10 @@ def file_format(path: str | os.PathLike[str]) -> FileFormat:
     for ending, layout in SUPPORTED_EXTENSIONS.items():
         if name.endswith(ending):
             return layout
-    raise ValueError(
-        f"{os.fspath(path)}: unsupported file name; use one of {', '.join(SUPPORTED_EXTENSIONS)}"
+    raise CellCoaddValueError(
+        f"{os.fspath(path)}: unsupported file name; use one of {', '.join(SUPPORTED_EXTENSIONS)}",
+        path=path,
+        allowed=tuple(SUPPORTED_EXTENSIONS),
     )
 
 
@@ -76,12 +84,18 @@ def _use_compression(path: str, compression: str | None) -> bool:
     if compression is None:
         return tile_compressed_name
     if compression not in ("none", "lossless"):
-        raise ValueError(
+        raise CellCoaddValueError(
             f"compression must be None, 'none' or 'lossless' (pixels are never quantised), "
-            f"got {compression!r}"
+            f"got {compression!r}",
+            value=compression,
+            allowed=(None, "none", "lossless"),
         )
     if compression == "none" and tile_compressed_name:
-        raise ValueError(f"{path}: .fits.fz files are tile compressed; use a .fits name instead")
+        raise CellCoaddIncompatibleValuesError(
+            f"{path}: .fits.fz files are tile compressed; use a .fits name instead",
+            path=path,
+            values={"compression": compression},
+        )
     return compression == "lossless"
 
 
@@ -125,7 +139,9 @@ def write(
         previous file at ``path`` is unchanged.
     """
     if not isinstance(patch_coadd, PatchCoadd):
-        raise TypeError(f"expected a PatchCoadd, got {type(patch_coadd).__name__}")
+        raise CellCoaddTypeError(
+            f"expected a PatchCoadd, got {type(patch_coadd).__name__}", allowed=PatchCoadd
+        )
     target = Path(os.fspath(path))
     file_kind = file_format(target)
     compress = _use_compression(str(target), compression)
@@ -157,11 +173,23 @@ def _foreign_writer(
 ) -> Callable[..., None]:
     """The writer of an explicitly chosen ``layout`` (ValueError if the name does not fit)."""
     if layout != "cell_coadds":
-        raise ValueError(f"unknown layout {layout!r}; use None or 'cell_coadds'")
+        raise CellCoaddValueError(
+            f"unknown layout {layout!r}; use None or 'cell_coadds'",
+            value=layout,
+            allowed=(None, "cell_coadds"),
+        )
     if file_kind != "fits" or str(target).lower().endswith(".fz"):
-        raise ValueError(f"{target}: the cell_coadds layout needs a .fits file name")
+        raise CellCoaddIncompatibleValuesError(
+            f"{target}: the cell_coadds layout needs a .fits file name",
+            path=target,
+            values={"layout": layout},
+        )
     if compress:
-        raise ValueError(f"{target}: the cell_coadds layout is not compressed")
+        raise CellCoaddIncompatibleValuesError(
+            f"{target}: the cell_coadds layout is not compressed",
+            path=target,
+            values={"layout": layout, "compress": compress},
+        )
     return write_cell_coadds
 
 
@@ -173,9 +201,10 @@ def _estimated_size(patch_coadd: PatchCoadd) -> int:
     """
     per_plane = 2 * 2880 + 2880
     total = 8 * 2880 + len(patch_coadd.metadata.model_dump_json())
+    n_objects = len(planes.cell_objects())  # the planes and the inputs table
     for cell in patch_coadd.values():
-        planes = (cell.image, cell.mask, cell.variance, cell.mfrac, cell.noise, cell.psf)
-        total += sum(plane.nbytes for plane in planes) + 7 * per_plane
+        total += sum(getattr(cell, spec.name).nbytes for spec in planes.PLANES)
+        total += n_objects * per_plane
         total += 128 * len(cell.inputs) + 4096  # inputs table rows, identity JSON
     return total
 

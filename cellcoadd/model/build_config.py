@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from cellcoadd.errors import ConfigError
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
@@ -113,5 +114,7 @@ class BuildConfig(BaseModel):
     @classmethod
     def _odd(cls, size: int) -> int:
         if size % 2 == 0:
-            raise ValueError(f"psf_size must be odd so the stamp has a central pixel, got {size}")
+            raise ConfigError(
+                f"psf_size must be odd so the stamp has a central pixel, got {size}", value=size
+            )
         return size

@@ -35,6 +35,7 @@ from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.planes import grid_plane_names, plane_names
 from cellcoadd.model.units import mask_plane_cards
 from cellcoadd.model.wcs_codec import wcs_to_record
 
@@ -43,7 +44,10 @@ PSF_SUM_TOLERANCE = 1e-6
 
 
 class CellPlanes(NamedTuple):
-    """Views of a cell's planes cut to a sub-box (the inner box, for :attr:`CellCoadd.inner`)."""
+    """Views of a cell's planes cut to a sub-box (the inner box, for :attr:`CellCoadd.inner`).
+
+    One field per plane on the cell grid (:func:`~cellcoadd.model.planes.grid_plane_names`).
+    """
 
     image: np.ndarray
     mask: np.ndarray
@@ -212,12 +216,9 @@ class CellCoadd:
     def inner(self) -> CellPlanes:
         """Views (not copies) of image, mask, variance, noise and mfrac cut to the inner box."""
         rows, cols = self.inner_bbox.slices_in(self.outer_bbox)
+        # the last two axes are the pixels' (per-realization planes lead with K)
         return CellPlanes(
-            image=self.image[rows, cols],
-            mask=self.mask[rows, cols],
-            variance=self.variance[rows, cols],
-            noise=self.noise[:, rows, cols],
-            mfrac=self.mfrac[rows, cols],
+            **{name: getattr(self, name)[..., rows, cols] for name in grid_plane_names()}
         )
 
     def to_nddata(
@@ -313,7 +314,7 @@ class CellCoadd:
             other.outer_bbox,
         ):
             return False
-        for plane in ("image", "mask", "variance", "noise", "mfrac", "psf"):
+        for plane in plane_names():
             if not arrays_identical(getattr(self, plane), getattr(other, plane)):
                 return False
         if len(self.inputs) != len(other.inputs) or not all(

@@ -16,6 +16,8 @@ from pydantic import (
     model_validator,
 )
 
+from cellcoadd.errors import CellCoaddValueError, InvalidCoaddError
+
 
 class InputStatus(str, Enum):
     """Status of an input in a cell: ``USED`` or the reason it was rejected.
@@ -66,11 +68,15 @@ def check_band_name(band: str) -> str:
     because fixed-width FITS strings cannot keep it.
     """
     if not band:
-        raise ValueError("band must be a non-empty string")
+        raise CellCoaddValueError("band must be a non-empty string", value=band)
     if band != band.strip():
-        raise ValueError(f"band {band!r} must not start or end with whitespace")
+        raise CellCoaddValueError(
+            f"band {band!r} must not start or end with whitespace", value=band
+        )
     if any(unicodedata.category(char).startswith("C") for char in band):
-        raise ValueError(f"band {band!r} must not contain control or unassigned characters")
+        raise CellCoaddValueError(
+            f"band {band!r} must not contain control or unassigned characters", value=band
+        )
     return band
 
 
@@ -159,14 +165,20 @@ class InputRecord(BaseModel):
     @model_validator(mode="after")
     def _check_weight_matches_status(self) -> InputRecord:
         if self.status == InputStatus.USED and not self.weight > 0.0:
-            raise ValueError(
+            raise InvalidCoaddError(
                 f"input (visit={self.visit}, detector={self.detector}) is used but has "
-                f"weight {self.weight}; a used input needs a positive weight"
+                f"weight {self.weight}; a used input needs a positive weight",
+                visit=self.visit,
+                detector=self.detector,
+                value=self.weight,
             )
         if self.status != InputStatus.USED and self.weight != 0.0:
-            raise ValueError(
+            raise InvalidCoaddError(
                 f"input (visit={self.visit}, detector={self.detector}) was rejected "
-                f"({self.status}) but has weight {self.weight}; rejected inputs have weight 0"
+                f"({self.status}) but has weight {self.weight}; rejected inputs have weight 0",
+                visit=self.visit,
+                detector=self.detector,
+                value=self.weight,
             )
         return self
 

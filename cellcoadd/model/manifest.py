@@ -24,6 +24,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cellcoadd.errors import CellCoaddValueError
+
 #: Built-in layouts: cellcoadd's own exposure files, the LSST single-detector files, the
 #: DES single-epoch files. A dict describes another multi-extension layout (the fields
 #: of :class:`cellcoadd.io.exposures.mef_layout.MefLayout`).
@@ -67,7 +69,7 @@ class ManifestEntry(BaseModel):
     @classmethod
     def _not_blank(cls, value: str | None) -> str | None:
         if value is not None and not value.strip():
-            raise ValueError("must not be blank (leave it out instead)")
+            raise CellCoaddValueError("must not be blank (leave it out instead)", value=value)
         return value
 
 

@@ -7,6 +7,8 @@ from collections.abc import Iterable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
+from cellcoadd.errors import CellCoaddKeyError, CellCoaddRangeError, CellCoaddValueError
+
 DEFAULT_BITS: dict[str, int] = {
     "BAD": 0,  # detector defect
     "SAT": 1,  # saturated
@@ -32,7 +34,9 @@ def _lowest_free(bits: dict[str, int]) -> int:
     for bit in range(MAX_BITS):
         if bit not in used:
             return bit
-    raise ValueError(f"more than {MAX_BITS} mask bit names: {sorted(bits)}")
+    raise CellCoaddValueError(
+        f"more than {MAX_BITS} mask bit names: {sorted(bits)}", value=sorted(bits)
+    )
 
 
 class MaskBits(BaseModel):
@@ -59,24 +63,32 @@ class MaskBits(BaseModel):
             # every format must store the name: FITS keywords MP_<NAME> take ASCII letters,
             # digits and underscores, and are case-insensitive
             if not name or not name.isascii() or not name.replace("_", "").isalnum():
-                raise ValueError(
+                raise CellCoaddValueError(
                     f"mask bit name {name!r} must be ASCII letters, digits and underscores "
-                    "(FITS keyword rules)"
+                    "(FITS keyword rules)",
+                    value=name,
                 )
             if len(name) > MAX_NAME_LENGTH:
-                raise ValueError(
-                    f"mask bit name {name!r} is longer than {MAX_NAME_LENGTH} characters"
+                raise CellCoaddValueError(
+                    f"mask bit name {name!r} is longer than {MAX_NAME_LENGTH} characters",
+                    value=name,
                 )
             other = keywords.setdefault(name.upper(), name)
             if other != name:
-                raise ValueError(
+                raise CellCoaddValueError(
                     f"mask bit names {other!r} and {name!r} differ only in case (FITS keywords "
-                    "do not)"
+                    "do not)",
+                    value=name,
                 )
             if not 0 <= bit <= 30:
-                raise ValueError(f"mask bit {name!r} = {bit} is outside 0..30 (int32 plane)")
+                raise CellCoaddRangeError(
+                    f"mask bit {name!r} = {bit} is outside 0..30 (int32 plane)",
+                    value=bit,
+                    low=0,
+                    high=30,
+                )
         if len(set(bits.values())) != len(bits):
-            raise ValueError(f"mask bits share a bit number: {bits}")
+            raise CellCoaddValueError(f"mask bits share a bit number: {bits}", value=bits)
         return bits
 
     def value(self, name: str) -> int:
@@ -84,7 +96,11 @@ class MaskBits(BaseModel):
         try:
             return 1 << self.bits[name]
         except KeyError:
-            raise KeyError(f"unknown mask bit {name!r}; known: {sorted(self.bits)}") from None
+            raise CellCoaddKeyError(
+                f"unknown mask bit {name!r}; known: {sorted(self.bits)}",
+                value=name,
+                allowed=sorted(self.bits),
+            ) from None
 
     def mask_of(self, names: Iterable[str]) -> int:
         """OR of the values of several named bits."""
@@ -118,7 +134,11 @@ class MaskBits(BaseModel):
         """
         missing = sorted(set(self.bits) - set(target.bits))
         if missing:
-            raise KeyError(f"mask bits {missing} have no place in {sorted(target.bits)}")
+            raise CellCoaddKeyError(
+                f"mask bits {missing} have no place in {sorted(target.bits)}",
+                value=missing,
+                allowed=sorted(target.bits),
+            )
         if all(target.bits[name] == bit for name, bit in self.bits.items()):
             return None
         out = np.zeros(MAX_BITS, dtype=np.int64)

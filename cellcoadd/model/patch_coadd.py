@@ -13,12 +13,19 @@ from astropy.wcs import WCS
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd._version import __version__
-from cellcoadd.errors import InvalidCoaddError
+from cellcoadd.errors import (
+    CellCoaddIncompatibleValuesError,
+    CellCoaddRangeError,
+    CellCoaddTypeError,
+    CellCoaddValueError,
+    InvalidCoaddError,
+)
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import NearestCenterRegion
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import check_band_name
@@ -29,7 +36,7 @@ from cellcoadd.model.units import (
     check_units,
     mask_plane_cards,
     stored_units,
-    unit_cards,
+    unit_cards_by_kind,
 )
 
 #: Version ``"MAJOR.MINOR"`` of the stored data model and file layouts. A major bump means
@@ -45,6 +52,8 @@ UNITS_VERSION = (1, 2)
 
 _VERSION_PATTERN = re.compile(r"^(\d+)\.(\d+)$")
 
+#: Planes that can be stitched: those on the cell grid (the type checker's copy of
+#: :func:`~cellcoadd.model.planes.grid_plane_names`; a test keeps them equal).
 Plane = Literal["image", "mask", "variance", "mfrac", "noise"]
 
 
@@ -66,7 +75,9 @@ def parse_format_version(version: str) -> tuple[int, int]:
     """``(major, minor)`` of a ``"MAJOR.MINOR"`` string (ValueError if malformed)."""
     match = _VERSION_PATTERN.match(version)
     if match is None:
-        raise ValueError(f"format version {version!r} is not of the form MAJOR.MINOR")
+        raise CellCoaddValueError(
+            f"format version {version!r} is not of the form MAJOR.MINOR", value=version
+        )
     return int(match.group(1)), int(match.group(2))
 
 
@@ -174,9 +185,15 @@ class PatchMetadata(BaseModel):
     def _check_center(cls, center: tuple[float, float]) -> tuple[float, float]:
         ra, dec = center
         if not (math.isfinite(ra) and 0.0 <= ra < 360.0 and math.isfinite(dec)):
-            raise ValueError(f"tract_center ra must be in [0, 360) deg, got {ra}")
+            raise InvalidCoaddError(
+                f"tract_center ra must be in [0, 360) deg, got {ra}", value=ra, allowed=(0.0, 360.0)
+            )
         if not -90.0 <= dec <= 90.0:
-            raise ValueError(f"tract_center dec must be in [-90, 90] deg, got {dec}")
+            raise InvalidCoaddError(
+                f"tract_center dec must be in [-90, 90] deg, got {dec}",
+                value=dec,
+                allowed=(-90.0, 90.0),
+            )
         return center
 
     @field_validator("format_version")
@@ -189,14 +206,18 @@ class PatchMetadata(BaseModel):
     @classmethod
     def _check_no_data(cls, mask_bits: MaskBits) -> MaskBits:
         if "NO_DATA" not in mask_bits.bits:
-            raise ValueError("mask_bits must define NO_DATA (it flags pixels without data)")
+            raise InvalidCoaddError("mask_bits must define NO_DATA (it flags pixels without data)")
         return mask_bits
 
     @model_validator(mode="after")
     def _check_patch(self) -> PatchMetadata:
         n = self.skymap_config.patches_per_tract
         if not all(0 <= p < n for p in self.patch):
-            raise ValueError(f"patch {self.patch} is outside the tract's {n} x {n} patches")
+            raise InvalidCoaddError(
+                f"patch {self.patch} is outside the tract's {n} x {n} patches",
+                value=self.patch,
+                allowed=(0, n),
+            )
         return self
 
     @property
@@ -207,16 +228,20 @@ class PatchMetadata(BaseModel):
         return u.Unit(self.units)
 
     def unit_cards(self) -> dict[str, list[tuple[str, object, str]]]:
-        """``BUNIT`` (and for counts ``MAGZERO``) keywords of the ``image``, ``noise`` and
-        ``variance`` planes, and ``MP_<NAME> = bit`` keywords of the ``mask`` plane, as
-        ``(name, value, comment)`` by plane: FITS header cards and HDF5 attributes.
+        """``BUNIT`` (and for counts ``MAGZERO``) keywords of the planes in flux or flux
+        squared (``image``, ``noise``, ``variance``), and ``MP_<NAME> = bit`` keywords of
+        the mask-bit plane (``mask``), as ``(name, value, comment)`` by plane (each plane's
+        :attr:`~cellcoadd.model.planes.PlaneSpec.unit`): FITS header cards and HDF5
+        attributes.
 
         Mask-bit names that are not upper-case ASCII (letters, digits, ``_``) are left
         out (FITS keywords cannot hold them); the metadata JSON names every bit.
         """
-        cards = unit_cards(self.units, self.zero_point)
-        cards["mask"] = mask_plane_cards(self.mask_bits.bits)
-        return cards
+        by_kind = unit_cards_by_kind(self.units, self.zero_point)
+        by_kind["mask_bits"] = mask_plane_cards(self.mask_bits.bits)
+        return {
+            spec.name: by_kind[spec.unit] for spec in cell_planes.PLANES if spec.unit in by_kind
+        }
 
     @property
     def n_noise(self) -> int:
@@ -305,7 +330,10 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
 
     def __init__(self, metadata: PatchMetadata, cells: Mapping[tuple[int, int], CellCoadd]) -> None:
         if not isinstance(metadata, PatchMetadata):
-            raise TypeError(f"metadata must be a PatchMetadata, got {type(metadata).__name__}")
+            raise CellCoaddTypeError(
+                f"metadata must be a PatchMetadata, got {type(metadata).__name__}",
+                allowed=PatchMetadata,
+            )
         self.metadata = metadata
         allowed = set(metadata.all_cell_indices)
         no_data = metadata.mask_bits.value("NO_DATA")
@@ -440,28 +468,43 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             A missing or empty cell leaves NaN there (float planes) or the ``NO_DATA`` bit
             (mask plane).
         """
-        if plane not in ("image", "variance", "mfrac", "mask", "noise"):
-            raise ValueError(f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise")
-        if plane == "noise":
+        if plane not in cell_planes.grid_plane_names():
+            raise CellCoaddValueError(
+                f"unknown plane {plane!r}; use image, variance, mfrac, mask or noise",
+                value=plane,
+                allowed=cell_planes.grid_plane_names(),
+            )
+        spec = cell_planes.plane(plane)
+        if spec.per_realization:
             if noise_index is None or not 0 <= noise_index < self.metadata.n_noise:
-                raise ValueError(
+                raise CellCoaddRangeError(
                     f"plane 'noise' needs noise_index in [0, {self.metadata.n_noise}), "
-                    f"got {noise_index}"
+                    f"got {noise_index}",
+                    value=noise_index,
+                    low=0,
+                    high=self.metadata.n_noise,
                 )
         elif noise_index is not None:
-            raise ValueError(f"noise_index applies to plane 'noise' only, not {plane!r}")
+            raise CellCoaddIncompatibleValuesError(
+                f"noise_index applies to plane 'noise' only, not {plane!r}",
+                values={"plane": plane, "noise_index": noise_index},
+            )
         box = self.patch_inner_bbox
         side = self.metadata.cell_inner
-        if plane == "mask":
-            out = np.full(box.shape, self.metadata.mask_bits.value("NO_DATA"), dtype=np.int32)
+        # no data: the NO_DATA bit in integer (mask) planes, NaN in float ones
+        if spec.dtype.kind in "iu":
+            fill: float = self.metadata.mask_bits.value("NO_DATA")
         else:
-            out = np.full(box.shape, np.nan, dtype=np.float32)
+            fill = np.nan
+        out = np.full(box.shape, fill, dtype=spec.dtype)
         for index in self.inner_cell_indices:
             cell = self.cells.get(index)
             if cell is None or cell.is_empty:
                 continue
             views = cell.inner
-            values = views.noise[noise_index] if plane == "noise" else getattr(views, plane)
+            values = getattr(views, plane)
+            if spec.per_realization:
+                values = values[noise_index]
             x0 = index[0] * side - box.x_start
             y0 = index[1] * side - box.y_start
             out[y0 : y0 + side, x0 : x0 + side] = values

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
-from cellcoadd.errors import PsfError
+from cellcoadd.errors import CellCoaddValueError, PsfError
 
 #: Largest side (samples) of a sampled PSF stamp; larger means a unit mistake.
 MAX_STAMP_SIZE = 1025
@@ -62,7 +62,7 @@ class VaryingPsf:
 
     def __post_init__(self) -> None:
         if not self.radius > 0:
-            raise ValueError("VaryingPsf radius must be positive")
+            raise CellCoaddValueError("VaryingPsf radius must be positive", value=self.radius)
 
     def parameters(self, x: float, y: float) -> tuple[float, float, float]:
         """``(dilation factor, g1, g2)`` at detector pixel ``(x, y)``."""
@@ -111,16 +111,19 @@ class GridPsf:
     def __post_init__(self) -> None:
         nyg, nxg = len(self.y_nodes), len(self.x_nodes)
         if self.stamps.ndim != 4 or self.stamps.shape[:2] != (nyg, nxg):
-            raise ValueError("GridPsf stamps must have shape (n_y_nodes, n_x_nodes, n, n)")
+            raise CellCoaddValueError(
+                "GridPsf stamps must have shape (n_y_nodes, n_x_nodes, n, n)",
+                value=self.stamps.shape,
+            )
         if self.stamps.shape[2] != self.stamps.shape[3] or self.stamps.shape[2] % 2 == 0:
-            raise ValueError("GridPsf stamps must be odd squares")
+            raise CellCoaddValueError("GridPsf stamps must be odd squares", value=self.stamps.shape)
         for nodes in (self.x_nodes, self.y_nodes):
             if len(nodes) > 1 and not np.all(np.diff(nodes) > 0):
-                raise ValueError("GridPsf nodes must be strictly increasing")
+                raise CellCoaddValueError("GridPsf nodes must be strictly increasing")
         if not (np.isfinite(self.scale) and self.scale > 0):
-            raise ValueError("GridPsf scale must be positive")
+            raise CellCoaddValueError("GridPsf scale must be positive", value=self.scale)
         if not np.all(np.isfinite(self.stamps)) or not np.all(self.stamps.sum(axis=(2, 3)) > 0):
-            raise ValueError("GridPsf stamps must be finite with positive sums")
+            raise CellCoaddValueError("GridPsf stamps must be finite with positive sums")
 
     @classmethod
     def sample(

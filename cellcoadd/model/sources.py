@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 from astropy.wcs import WCS
 
+from cellcoadd.errors import CellCoaddTypeError, InputError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.maskbits import MaskBits
@@ -91,9 +92,13 @@ def cutout_box(header: ExposureHeader, box: Box | None) -> Box:
     if box is None:
         return full
     if not box.overlaps(full):
-        raise ValueError(
+        raise InputError(
             f"exposure (visit={header.visit}, detector={header.detector}): box {box} is "
-            f"outside the detector {full}"
+            f"outside the detector {full}",
+            visit=header.visit,
+            detector=header.detector,
+            value=box,
+            allowed=full,
         )
     return box.intersection(full)
 
@@ -128,7 +133,10 @@ def describe(item: Exposure | ExposureSource | DescribedSource) -> Exposure | De
         return item
     if isinstance(item, ExposureSource):
         return DescribedSource(item, item.header())
-    raise TypeError(f"an input must be an Exposure or an ExposureSource, got {item!r}")
+    raise CellCoaddTypeError(
+        f"an input must be an Exposure or an ExposureSource, got {item!r}",
+        allowed=(Exposure, ExposureSource),
+    )
 
 
 def header_of(item: Exposure | DescribedSource) -> Exposure | ExposureHeader:

@@ -26,6 +26,8 @@ import math
 import re
 from typing import Any, Literal
 
+from cellcoadd.errors import CellCoaddIncompatibleValuesError, CellCoaddValueError
+
 #: AB magnitude of 1 nJy: ``-2.5 log10(1e-9 / 3631) = 2.5 log10(3631e9) = 31.4`` (31.40006).
 NJY_ZERO_POINT = 2.5 * math.log10(3631.0e9)
 
@@ -83,7 +85,7 @@ def zero_point_of(unit: str, zero_point: float | None) -> float:
     if unit == "nJy":
         return NJY_ZERO_POINT
     if zero_point is None:
-        raise ValueError("counts need a zero point")
+        raise CellCoaddValueError("counts need a zero point")
     return zero_point
 
 
@@ -97,21 +99,21 @@ def variance_unit(unit: str) -> str:
     return f"{unit}2"
 
 
-def unit_cards(unit: str, zero_point: float) -> dict[str, list[tuple[str, object, str]]]:
-    """Unit keywords of each plane that has a unit, as ``(name, value, comment)``.
+def unit_cards_by_kind(unit: str, zero_point: float) -> dict[str, list[tuple[str, object, str]]]:
+    """Unit keywords of the planes by unit kind (:data:`~cellcoadd.model.planes.UnitKind`)
+    that has one, as ``(name, value, comment)``.
 
-    ``image`` and ``noise``: ``BUNIT`` (plus ``MAGZERO`` for counts); ``variance``:
-    ``BUNIT`` of the unit squared (plus ``MAGZERO``). Used for FITS header cards and HDF5
-    attributes alike.
+    ``"flux"`` (``image``, ``noise``): ``BUNIT`` (plus ``MAGZERO`` for counts);
+    ``"flux_squared"`` (``variance``): ``BUNIT`` of the unit squared (plus ``MAGZERO``).
+    Used for FITS header cards and HDF5 attributes alike.
     """
     magzero: list[tuple[str, object, str]] = []
     if unit != "nJy":
         magzero = [("MAGZERO", float(zero_point), "[mag] AB zero point of the pixel values")]
     flux = [("BUNIT", unit, "pixel unit"), *magzero]
     return {
-        "image": flux,
-        "noise": flux,
-        "variance": [("BUNIT", variance_unit(unit), "pixel unit (variance)"), *magzero],
+        "flux": flux,
+        "flux_squared": [("BUNIT", variance_unit(unit), "pixel unit (variance)"), *magzero],
     }
 
 
@@ -142,7 +144,7 @@ __all__ = [
     "legacy_units",
     "mask_plane_cards",
     "normalise_unit",
-    "unit_cards",
+    "unit_cards_by_kind",
     "variance_unit",
     "zero_point_of",
 ]
@@ -158,12 +160,13 @@ def check_units(units: str, zero_point: float, zero_point_given: bool) -> None:
         stated zero point.
     """
     if units == "nJy" and zero_point != NJY_ZERO_POINT:
-        raise ValueError(
+        raise CellCoaddIncompatibleValuesError(
             f"units 'nJy' mean the AB zero point {NJY_ZERO_POINT:.5f}, not "
-            f"{zero_point}; use units 'count' for counts at another zero point"
+            f"{zero_point}; use units 'count' for counts at another zero point",
+            values={"units": units, "zero_point": zero_point},
         )
     if units == "count" and not zero_point_given:
-        raise ValueError("units 'count' need a zero_point (mag)")
+        raise CellCoaddValueError("units 'count' need a zero_point (mag)", value=units)
 
 
 def stored_units(

@@ -19,6 +19,8 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS, FITSFixedWarning, Sip
 
+from cellcoadd.errors import CellCoaddValueError
+
 
 def wcs_header(wcs: WCS) -> fits.Header:
     """``wcs.to_header(relax=True)`` (SIP included) without astropy's fix-up warnings.
@@ -150,7 +152,7 @@ def wcs_to_record(
         or wcs.det2im1 is not None
         or (wcs.det2im2 is not None)
     ):
-        raise ValueError("WCS lookup-table distortions (CPDIS/DET2IM) cannot be stored")
+        raise CellCoaddValueError("WCS lookup-table distortions (CPDIS/DET2IM) cannot be stored")
     exact = wcs_exact_parameters(wcs)
     if card_values is not None:
         fast = _wcslib_cards(wcs, card_values)

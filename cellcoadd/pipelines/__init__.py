@@ -29,7 +29,7 @@ _EXPORTS: dict[str, str] = {
     "M_REQUIREMENT": "cellcoadd.pipelines.bias_table",
     "PAPER_TABLE1": "cellcoadd.pipelines.bias_table",
     "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.bias_table",
-    "PairCatalogue": "cellcoadd.pipelines.shear_validation",
+    "PairCatalogue": "cellcoadd.pipelines.stamp_pairs",
     "format_bias_table": "cellcoadd.pipelines.bias_table",
     "measure_pairs": "cellcoadd.pipelines.shear_validation",
     "run_pairs": "cellcoadd.pipelines.shear_validation",
@@ -86,12 +86,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         measure_single_epoch,
     )
     from cellcoadd.pipelines.shear_validation import (
-        PairCatalogue,
         measure_pairs,
         run_pairs,
         summarize,
         validate_shear,
     )
-    from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
+    from cellcoadd.pipelines.stamp_pairs import PairCatalogue, PairMeasurement, measure_pair
     from cellcoadd.pipelines.tract_run import RunResult, plan_tract, run_tract
     from cellcoadd.pipelines.validation_settings import ValidationSettings, largest_cell_inner

@@ -8,16 +8,15 @@ mean shear being ``<e> / <de/dg>`` over the pairs whose two members were measure
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import ShearError
 from cellcoadd.pipelines.bias_table import summary_fields
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear.anacal_adapter import paired_bias
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 
 def summarize_anacal(
@@ -28,7 +27,7 @@ def summarize_anacal(
     plus, minus = catalogue.plus["anacal"], catalogue.minus["anacal"]
     good_plus, good_minus = plus["flags"] == 0, minus["flags"] == 0
     if not np.any(good_plus & good_minus):
-        raise ValueError("no AnaCal pair could be measured")
+        raise ShearError("no AnaCal pair could be measured")
     bias = paired_bias(plus, minus, true_g=settings.sim.shear[0], group=group)
     kept = good_plus & good_minus
     cpu = float(catalogue.cpu_seconds.sum())

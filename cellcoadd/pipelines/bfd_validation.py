@@ -13,17 +13,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import BfdError
 from cellcoadd.pipelines.bias_table import summary_fields
-from cellcoadd.pipelines.stamp_pairs import bfd_noise_sigma, bfd_templates
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, bfd_noise_sigma, bfd_templates
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear import bfd
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,7 +58,7 @@ def bfd_posterior(settings: ValidationSettings, catalogue: PairCatalogue) -> Bfd
     plus, minus = catalogue.plus["bfd"], catalogue.minus["bfd"]
     good = (plus["flags"] == 0) & (minus["flags"] == 0)
     if not np.any(good):
-        raise ValueError("no BFD target could be measured")
+        raise BfdError("no BFD target could be measured")
     cov_even = np.mean(np.concatenate([plus["cov_even"][good], minus["cov_even"][good]]), axis=0)
     cov_odd = np.mean(np.concatenate([plus["cov_odd"][good], minus["cov_odd"][good]]), axis=0)
     start = time.process_time()

@@ -23,6 +23,7 @@ import numpy as np
 from astropy.table import Table
 
 from cellcoadd.builder import build_patch
+from cellcoadd.errors import CellCoaddRuntimeError
 from cellcoadd.geometry import flag_unique
 from cellcoadd.io import api as coadd_io
 from cellcoadd.io._files.atomic import atomic_write, atomic_write_text
@@ -94,7 +95,7 @@ def _trim_truth(truth: Table, skymap, coadd: PatchCoadd) -> tuple[Table, int]:
     table["is_cell_inner"] = kept == 1
     table["is_primary"] = table["is_patch_inner"] & table["is_cell_inner"]
     if not np.array_equal(kept, flags["is_patch_inner"].astype(int)):
-        raise AssertionError("catalog trimming kept an object twice or lost one")
+        raise CellCoaddRuntimeError("catalog trimming kept an object twice or lost one")
     return table, int(flags["is_patch_inner"].sum())
 
 
@@ -262,7 +263,11 @@ def run_demo(
     for role in ("coadd_fits", "coadd_hdf5"):
         with coadd_io.open(result.files[role]) as stored:
             if not stored.read_cell(check).equals(coadd.cells[check]):
-                raise AssertionError(f"cell {check} read from {result.files[role]} differs")
+                raise CellCoaddRuntimeError(
+                    f"cell {check} read from {result.files[role]} differs",
+                    path=result.files[role],
+                    cell=check,
+                )
     clock.lap("read back")
     truth, n_in_patch = _trim_truth(sim.truth, skymap, coadd)
     result.files["truth_trimmed"] = out / "truth_trimmed.fits"

@@ -140,7 +140,7 @@ def bfd_epoch_sum(
     """The summed Fourier data of an object's epochs (multi-epoch BFD, module docstring).
 
     ``noise_variance`` (counts^2, the same in every epoch) gives each epoch's white-noise
-    power; None for noise-free templates. Raises :class:`~cellcoadd.shear.bfd.BfdError`
+    power; None for noise-free templates. Raises :class:`~cellcoadd.errors.BfdError`
     when an epoch cannot be measured.
     """
     weight = bfd.KSigmaWeight(sigma=settings.bfd_sigma)

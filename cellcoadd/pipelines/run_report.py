@@ -11,14 +11,11 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cellcoadd._version import __version__
 from cellcoadd.geometry.tract import Tract
 from cellcoadd.pipelines.ledger import Ledger
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.tract_run import RunResult
 
 REPORT_NAME = "report.json"
 FIGURE_NAME = "coverage.png"
@@ -38,8 +35,9 @@ _PATCH_FIELDS = (
 )
 
 
-def report_data(ledger: Ledger, tract: Tract, result: RunResult) -> dict[str, Any]:
-    """The content of ``report.json`` (JSON-able)."""
+def report_data(ledger: Ledger, tract: Tract, this_run: dict[str, Any]) -> dict[str, Any]:
+    """The content of ``report.json`` (JSON-able); ``this_run`` says what the run that
+    writes it did (:meth:`cellcoadd.pipelines.tract_run.RunResult.as_report`)."""
     rows = sorted(ledger.rows(tract.id).values(), key=lambda r: (r.patch[1], r.patch[0]))
     patches = []
     totals: dict[str, Any] = {
@@ -86,15 +84,7 @@ def report_data(ledger: Ledger, tract: Tract, result: RunResult) -> dict[str, An
         "band": rows[0].band if rows else None,
         "library_version": __version__,
         "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "this_run": {
-            "planned": len(result.planned),
-            "built": [list(p) for p in result.built],
-            "up_to_date": len(result.up_to_date),
-            "failed": {f"{p[0]},{p[1]}": why for p, why in result.failed.items()},
-            "no_inputs": [list(p) for p in result.no_inputs],
-            "retries": result.retries,
-            "wall_s": round(result.wall_s, 3),
-        },
+        "this_run": this_run,
         "totals": totals,
         "failures": [
             {"patch": p["patch"], "error": p["error"]} for p in patches if p["state"] == "failed"
@@ -104,12 +94,12 @@ def report_data(ledger: Ledger, tract: Tract, result: RunResult) -> dict[str, An
 
 
 def write_report(
-    ledger: Ledger, tract: Tract, out_dir: Path, result: RunResult, *, figure: bool = True
+    ledger: Ledger, tract: Tract, out_dir: Path, this_run: dict[str, Any], *, figure: bool = True
 ) -> tuple[Path, Path | None]:
     """Write ``report.json`` (and ``coverage.png``) in ``out_dir``; their paths."""
     from cellcoadd.io._files.atomic import atomic_write, atomic_write_text
 
-    data = report_data(ledger, tract, result)
+    data = report_data(ledger, tract, this_run)
     report = out_dir / REPORT_NAME
     atomic_write_text(report, json.dumps(data, indent=1) + "\n", overwrite=True)
     if not figure:

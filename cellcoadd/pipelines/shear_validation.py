@@ -25,37 +25,30 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ShearError
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
-    M_REQUIREMENT,
-    PAPER_LABELS,
-    PAPER_TABLE1,
-    PAPER_TABLE1_ROWS,
-    format_bias_table,
-    paper_value,
     summary_fields,
 )
-from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import (
     BFD_OVERSAMPLE,
     Method,
     Mode,
     ValidationSettings,
     check_method_mode,
-    expected_inputs,
     stamp_cell,
 )
-from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
+from cellcoadd.shear.metacal import ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
-from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
+from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
 #: Keys of :func:`validate_shear`'s result that are always JSON-serialisable.
@@ -73,73 +66,6 @@ RESULT_KEYS: tuple[str, ...] = (
     "method",
     "settings",
 )
-
-
-@dataclass(frozen=True, eq=False)
-class PairCatalogue:
-    """Measurements of many pairs as compact arrays (about 0.8 kB per pair).
-
-    Attributes
-    ----------
-    index : ndarray of int64
-        Object indices, increasing.
-    plus, minus : dict of str to ndarray
-        For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
-        ``+g`` and ``-g`` members, aligned with ``index`` (what
-        :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
-        :data:`~cellcoadd.pipelines.stamp_pairs.BFD_DTYPE` rows under ``"bfd"``.
-    noise_sigma, snr, n_inputs, cpu_seconds : ndarray
-        Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
-    """
-
-    index: np.ndarray
-    plus: dict[str, np.ndarray]
-    minus: dict[str, np.ndarray]
-    noise_sigma: np.ndarray
-    snr: np.ndarray
-    n_inputs: np.ndarray
-    cpu_seconds: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.index)
-
-    @classmethod
-    def from_pairs(cls, pairs: Sequence[PairMeasurement]) -> PairCatalogue:
-        """Stack single-object measurements."""
-        keys = list(pairs[0].plus) if pairs else list(METACAL_TYPES)
-        return cls(
-            index=np.array([pair.index for pair in pairs], dtype=np.int64),
-            plus={t: _rows([pair.plus[t] for pair in pairs]) for t in keys},
-            minus={t: _rows([pair.minus[t] for pair in pairs]) for t in keys},
-            noise_sigma=np.array([pair.noise_sigma for pair in pairs], dtype=np.float64),
-            snr=np.array([pair.snr for pair in pairs], dtype=np.float64),
-            n_inputs=np.array([pair.n_inputs for pair in pairs], dtype=np.int64),
-            cpu_seconds=np.array([pair.cpu_seconds for pair in pairs], dtype=np.float64),
-        )
-
-    @classmethod
-    def concatenate(cls, catalogues: Sequence[PairCatalogue]) -> PairCatalogue:
-        """Join catalogues (e.g. chunks or index ranges of a run), ordered by index."""
-        index = np.concatenate([c.index for c in catalogues])
-        order = np.argsort(index, kind="stable")
-        keys = list(catalogues[0].plus)
-
-        def join(name: str) -> np.ndarray:
-            return np.concatenate([getattr(c, name) for c in catalogues])[order]
-
-        return cls(
-            index=index[order],
-            plus={t: np.concatenate([c.plus[t] for c in catalogues])[order] for t in keys},
-            minus={t: np.concatenate([c.minus[t] for c in catalogues])[order] for t in keys},
-            noise_sigma=join("noise_sigma"),
-            snr=join("snr"),
-            n_inputs=join("n_inputs"),
-            cpu_seconds=join("cpu_seconds"),
-        )
-
-
-def _rows(records: list[np.ndarray]) -> np.ndarray:
-    return np.concatenate(records) if records else np.zeros(0, dtype=SHAPE_DTYPE)
 
 
 def measure_pairs(settings: ValidationSettings, indices: Sequence[int]) -> PairCatalogue:
@@ -171,11 +97,12 @@ def run_pairs(
         Ordered by object index, identical whatever the executor and chunking.
     """
     if n_objects < 1 or first_index < 0:
-        raise ValueError(
-            f"need n_objects >= 1 and first_index >= 0, got {n_objects}, {first_index}"
+        raise CellCoaddValueError(
+            f"need n_objects >= 1 and first_index >= 0, got {n_objects}, {first_index}",
+            value=(n_objects, first_index),
         )
     if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise CellCoaddRangeError(f"workers must be >= 1, got {workers}", value=workers, low=1)
     pool, release = resolve_executor(executor, workers, scheduler)
     if chunk_size is None:
         # several chunks per worker keep the pool busy and the progress bar moving
@@ -207,7 +134,9 @@ def run_pairs(
 def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
     """Biases and diagnostics of a catalogue of pairs (the result of :func:`validate_shear`)."""
     if len(catalogue) < 2:
-        raise ValueError(f"a bias needs at least 2 pairs, got {len(catalogue)}")
+        raise ShearError(
+            f"a bias needs at least 2 pairs, got {len(catalogue)}", value=len(catalogue)
+        )
     if settings.method == "bfd":
         return summarize_bfd(settings, catalogue, _group(settings, catalogue))
     if settings.method == "anacal":
@@ -358,7 +287,9 @@ def validate_shear(
         ``"dilate"`` reconvolution PSF in multi-epoch metacal).
     """
     if n_objects < 2:
-        raise ValueError(f"a bias needs at least 2 objects, got n_objects = {n_objects}")
+        raise CellCoaddRangeError(
+            f"a bias needs at least 2 objects, got n_objects = {n_objects}", value=n_objects, low=2
+        )
     check_method_mode(method, mode, reconvolution_psf)
     sim = sim or SimConfig()
     if shear is not None:
@@ -397,16 +328,8 @@ def validate_shear(
 
 
 __all__ = [
-    "M_REQUIREMENT",
-    "PAPER_LABELS",
-    "PAPER_TABLE1",
-    "PAPER_TABLE1_ROWS",
     "RESULT_KEYS",
-    "PairCatalogue",
-    "expected_inputs",
-    "format_bias_table",
     "measure_pairs",
-    "paper_value",
     "run_pairs",
     "summarize",
     "validate_shear",

@@ -33,12 +33,13 @@ from typing import Any
 import numpy as np
 
 from cellcoadd._version import __version__
-from cellcoadd.errors import ConfigError, InputError
+from cellcoadd.errors import ConfigError, InputError, MissingDependencyError
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.io.exposures.index import ExposureIndex, IndexedExposure, file_sha256
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.pipelines.ledger import Ledger, RunLock, config_hash, patch_signature
+from cellcoadd.pipelines.run_report import write_report
 
 #: Output formats: file ending of each.
 FORMATS = {"fits": ".fits", "h5": ".h5"}
@@ -241,6 +242,18 @@ class RunResult:
     report: Path | None = None
     figure: Path | None = None
 
+    def as_report(self) -> dict[str, Any]:
+        """What this run did, as ``report.json`` lists it under ``this_run``."""
+        return {
+            "planned": len(self.planned),
+            "built": [list(p) for p in self.built],
+            "up_to_date": len(self.up_to_date),
+            "failed": {f"{p[0]},{p[1]}": why for p, why in self.failed.items()},
+            "no_inputs": [list(p) for p in self.no_inputs],
+            "retries": self.retries,
+            "wall_s": round(self.wall_s, 3),
+        }
+
     def summary(self) -> str:
         return (
             f"{self.out_dir}: {len(self.planned)} patches planned, {len(self.built)} built, "
@@ -406,10 +419,8 @@ def run_tract(
                     progress=progress)  # fmt: skip
         ledger.finish_run(run_id, len(result.built), len(result.failed))
         result.wall_s = time.perf_counter() - start
-        from cellcoadd.pipelines.run_report import write_report
-
         result.report, result.figure = write_report(
-            ledger, plan.tract, out_dir, result, figure=figure
+            ledger, plan.tract, out_dir, result.as_report(), figure=figure
         )
     return result
 
@@ -469,7 +480,7 @@ def dask_cluster(workers: int) -> tuple[Any, Callable[[], None]]:
 
     Raises
     ------
-    ConfigError
+    MissingDependencyError
         When dask.distributed is not installed.
     """
     distributed = _import_distributed()
@@ -500,9 +511,10 @@ def _import_distributed() -> Any:
     try:
         import distributed
     except ImportError:
-        raise ConfigError(
+        raise MissingDependencyError(
             "runs on several workers or a scheduler need dask.distributed: "
-            "pip install 'cellcoadd[dask]' (or run with --workers 1)"
+            "pip install 'cellcoadd[dask]' (or run with --workers 1)",
+            package="distributed",
         ) from None
     return distributed
 

@@ -14,7 +14,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
-from cellcoadd.shear.bfd_moments import DEFAULT_OVERSAMPLE
+from cellcoadd.shear.bfd import DEFAULT_OVERSAMPLE
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
@@ -167,21 +167,25 @@ class ValidationSettings(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> ValidationSettings:
         if self.snr is not None and not 0.0 < self.snr[0] <= self.snr[1]:
-            raise ValueError(f"snr must satisfy 0 < lo <= hi, got {self.snr}")
+            raise ConfigError(f"snr must satisfy 0 < lo <= hi, got {self.snr}", value=self.snr)
         if self.cell_inner % 2 == 0:
-            raise ValueError(
+            raise ConfigError(
                 f"cell_inner must be odd so the cell centre falls on the objects, "
-                f"got {self.cell_inner}"
+                f"got {self.cell_inner}",
+                value=self.cell_inner,
             )
         if self.build.n_noise <= self.noise_index:
-            raise ValueError(
+            raise ConfigError(
                 f"build.n_noise = {self.build.n_noise} has no noise realization "
-                f"{self.noise_index}: metacal needs one"
+                f"{self.noise_index}: metacal needs one",
+                value=self.noise_index,
+                allowed=(0, self.build.n_noise),
             )
         if self.sim.shear[0] == 0.0 or self.sim.shear[1] != 0.0:
-            raise ValueError(
+            raise ConfigError(
                 f"the bias is measured on g1: sim.shear must be (g, 0) with g != 0, "
-                f"got {self.sim.shear}"
+                f"got {self.sim.shear}",
+                value=self.sim.shear,
             )
         check_method_mode(self.method, self.mode, self.reconvolution_psf)
         if self.bfd_template_sample == "targets" and self.rotated_partners:
@@ -191,7 +195,9 @@ class ValidationSettings(BaseModel):
                 "with the target's own"
             )
         if self.build.psf_size > self.cell_inner + 2 * self.cell_border:
-            raise ValueError("build.psf_size exceeds the cell outer box")
+            raise ConfigError(
+                "build.psf_size exceeds the cell outer box", value=self.build.psf_size
+            )
         return self
 
     @property
@@ -238,9 +244,10 @@ def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: in
     half_outer = int(np.floor(reach / stretch * sim.pixel_scale / coadd_pixel_scale - 1e-9))
     inner = 2 * (half_outer - cell_border) + 1
     if inner < 1:
-        raise ValueError(
+        raise ConfigError(
             f"no cell with a {cell_border}-pixel border at {coadd_pixel_scale} arcsec/pixel "
-            f"fits in a {sim.stamp_size}-pixel stamp"
+            f"fits in a {sim.stamp_size}-pixel stamp",
+            value=cell_border,
         )
     return inner
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, MissingDependencyError, ShearError
 from cellcoadd.shear.response import paired_shear_bias
 
 #: One AnaCal measurement: ``flags`` (0: good, :data:`ANACAL_FAILED`), the ellipticities,
@@ -69,7 +70,7 @@ def require_anacal() -> Any:
     try:
         import anacal
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(_ANACAL_MISSING) from exc
+        raise MissingDependencyError(_ANACAL_MISSING, package="anacal") from exc
     return anacal
 
 
@@ -92,7 +93,7 @@ def padded_psf(psf: np.ndarray, npix: int) -> np.ndarray:
     psf = np.asarray(psf, dtype=np.float64)
     ny, nx = psf.shape
     if ny % 2 == 0 or nx % 2 == 0:
-        raise ValueError(f"the PSF stamp must have odd sides, got {psf.shape}")
+        raise ShearError(f"the PSF stamp must have odd sides, got {psf.shape}", value=psf.shape)
     out = np.zeros((npix, npix))
     half = npix // 2
     # source rows cy - half .. cy - half + npix - 1 go to rows 0 .. npix - 1
@@ -153,13 +154,18 @@ def measure_fpfs(
     image = np.ascontiguousarray(image, dtype=np.float64)
     noise = np.ascontiguousarray(noise, dtype=np.float64)
     if image.shape != noise.shape:
-        raise ValueError(f"image {image.shape} and noise {noise.shape} differ in shape")
+        raise ShearError(
+            f"image {image.shape} and noise {noise.shape} differ in shape",
+            value=(image.shape, noise.shape),
+        )
     jac = np.asarray(jacobian, dtype=np.float64)
     det = float(np.linalg.det(jac))
     if det == 0.0 or not np.isfinite(det):
-        raise ValueError(f"singular jacobian {jac.tolist()}")
+        raise ShearError(f"singular jacobian {jac.tolist()}", value=jac.tolist())
     if not noise_variance > 0.0:
-        raise ValueError(f"noise_variance must be > 0, got {noise_variance}")
+        raise CellCoaddRangeError(
+            f"noise_variance must be > 0, got {noise_variance}", value=noise_variance, low=0.0
+        )
     scale = float(np.sqrt(abs(det)))
     config = anacal.fpfs.FpfsConfig(npix=npix, sigma_shapelets1=sigma_arcsec, c0=c0)
     detection = np.array([(float(centre[1]), float(centre[0]))], dtype=[("y", "f8"), ("x", "f8")])
@@ -204,7 +210,9 @@ def paired_bias(
     rows removed together).
     """
     if len(plus) != len(minus):
-        raise ValueError("plus and minus must hold the same objects (same length)")
+        raise ShearError(
+            "plus and minus must hold the same objects (same length)", value=(len(plus), len(minus))
+        )
     good = (plus["flags"] == 0) & (minus["flags"] == 0)
     columns = ("e1", "e2", "de1_dg1", "de2_dg2")
     terms = np.stack(

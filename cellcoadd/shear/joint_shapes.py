@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
+from cellcoadd.errors import ShearError
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
 from cellcoadd.shear.shapes import (
     SHAPE_DTYPE,
@@ -146,7 +147,7 @@ def joint_sums(
         Noise variance of ``sums[0]`` (image units squared).
     """
     if not epochs:
-        raise ValueError("a joint measurement needs at least one epoch")
+        raise ShearError("a joint measurement needs at least one epoch")
     weights = _epoch_weights(epochs)
     du, dv = float(offset[0]), float(offset[1])
     total = np.zeros(7)

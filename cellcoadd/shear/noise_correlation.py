@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, ShearError
 from cellcoadd.model.cell_coadd import CellCoadd
 
 #: Default largest lag (pixels) of the covariance sums. The Lanczos-3 kernel spans
@@ -44,9 +45,10 @@ def _realizations(noise: CellCoadd | Any) -> np.ndarray:
     """The realizations as a float64 ``(K, ny, nx)`` array (inner region of a cell)."""
     if isinstance(noise, CellCoadd):
         if noise.n_noise == 0:
-            raise ValueError(
+            raise ShearError(
                 f"cell {noise.index} of tract {noise.tract} has no noise realization; "
-                "build it with BuildConfig(n_noise >= 1)"
+                "build it with BuildConfig(n_noise >= 1)",
+                cell=noise.index,
             )
         array = np.asarray(noise.inner.noise, dtype=np.float64)
     else:
@@ -54,21 +56,25 @@ def _realizations(noise: CellCoadd | Any) -> np.ndarray:
         if array.ndim == 2:
             array = array[np.newaxis]
     if array.ndim != 3 or array.shape[0] == 0 or min(array.shape[1:]) < 2:
-        raise ValueError(
+        raise ShearError(
             "noise realizations must be a CellCoadd or an array of shape (K, ny, nx) "
-            f"with K >= 1 and ny, nx >= 2, got shape {array.shape}"
+            f"with K >= 1 and ny, nx >= 2, got shape {array.shape}",
+            value=array.shape,
         )
     if not np.all(np.isfinite(array)):
-        raise ValueError("noise realizations contain non-finite values")
+        raise ShearError("noise realizations contain non-finite values")
     return array
 
 
 def _check_max_lag(max_lag: int, shape: tuple[int, ...]) -> int:
     max_lag = int(max_lag)
     if max_lag < 0 or max_lag >= min(shape[-2:]):
-        raise ValueError(
+        raise CellCoaddRangeError(
             f"max_lag must be in [0, {min(shape[-2:]) - 1}] for realizations of shape "
-            f"{shape[-2:]}, got {max_lag}"
+            f"{shape[-2:]}, got {max_lag}",
+            value=max_lag,
+            low=0,
+            high=min(shape[-2:]) - 1,
         )
     return max_lag
 
@@ -128,9 +134,11 @@ def noise_power_spectrum(noise: CellCoadd | Any) -> np.ndarray:
 def _weight_stamp(weight_image: Any) -> np.ndarray:
     weight = np.asarray(weight_image, dtype=np.float64)
     if weight.ndim != 2 or weight.size == 0 or not np.all(np.isfinite(weight)):
-        raise ValueError(f"weight_image must be a finite 2-d array, got shape {weight.shape}")
+        raise ShearError(
+            f"weight_image must be a finite 2-d array, got shape {weight.shape}", value=weight.shape
+        )
     if not np.any(weight):
-        raise ValueError("weight_image is zero everywhere")
+        raise ShearError("weight_image is zero everywhere")
     return weight
 
 
@@ -187,7 +195,9 @@ def variance_factor(
 def gaussian_weight(sigma_pix: float, radius: float = 5.0) -> np.ndarray:
     """Round Gaussian ``exp(-r^2 / 2 sigma^2)`` on an odd stamp of half-size ``radius sigma``."""
     if not np.isfinite(sigma_pix) or sigma_pix <= 0.0:
-        raise ValueError(f"sigma_pix must be finite and positive, got {sigma_pix}")
+        raise CellCoaddRangeError(
+            f"sigma_pix must be finite and positive, got {sigma_pix}", value=sigma_pix, low=0.0
+        )
     half = max(1, int(np.ceil(radius * sigma_pix)))
     offsets = np.arange(-half, half + 1, dtype=np.float64)
     r2 = offsets[:, np.newaxis] ** 2 + offsets[np.newaxis, :] ** 2

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.errors import EmptyCellError
+from cellcoadd.errors import CellCoaddRangeError, EmptyCellError, MissingDependencyError, ShearError
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.model.cell_coadd import CellCoadd
 
@@ -67,9 +67,11 @@ def _noise_variance(cell: CellCoadd) -> float:
             variances.append(float(np.var(finite)))
     variance = float(np.mean(variances)) if variances else float("nan")
     if not np.isfinite(variance) or variance <= 0.0:
-        raise ValueError(
+        raise ShearError(
             f"cell {cell.index} of tract {cell.tract}: its noise realizations give no "
-            f"positive variance (got {variance})"
+            f"positive variance (got {variance})",
+            cell=cell.index,
+            value=variance,
         )
     return variance
 
@@ -108,13 +110,18 @@ def to_observation(cell: CellCoadd, noise_index: int = 0) -> dict[str, Any]:
     if cell.is_empty:
         raise EmptyCellError(
             f"{name} is empty (no input covered it; {len(cell.inputs)} rejected): "
-            "there is nothing to measure"
+            "there is nothing to measure",
+            cell=cell.index,
         )
     if not 0 <= noise_index < cell.n_noise:
-        raise ValueError(
+        raise CellCoaddRangeError(
             f"{name} has {cell.n_noise} noise realizations, so noise_index must be in "
             f"[0, {cell.n_noise}), got {noise_index}"
-            + ("; build it with BuildConfig(n_noise >= 1)" if cell.n_noise == 0 else "")
+            + ("; build it with BuildConfig(n_noise >= 1)" if cell.n_noise == 0 else ""),
+            value=noise_index,
+            low=0,
+            high=cell.n_noise,
+            cell=cell.index,
         )
     variance = _noise_variance(cell)
     ny, nx = cell.shape
@@ -174,7 +181,7 @@ def to_ngmix(cell: CellCoadd, noise_index: int = 0) -> Any:
     try:
         import ngmix
     except ImportError as err:
-        raise ImportError(_NGMIX_MISSING) from err
+        raise MissingDependencyError(_NGMIX_MISSING, package="ngmix") from err
     observation = to_observation(cell, noise_index)
     jac = observation["jacobian"]
     derivatives = {key: jac[key] for key in ("dudrow", "dudcol", "dvdrow", "dvdcol")}

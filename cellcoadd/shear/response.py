@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, ShearError
 from cellcoadd.shear.metacal import METACAL_TYPES
 
 Results = Mapping[str, np.ndarray] | Sequence[Mapping[str, np.ndarray]]
@@ -115,7 +116,7 @@ def stack_results(results: Results) -> dict[str, np.ndarray]:
         stacked = {name: np.asarray(results[name]) for name in METACAL_TYPES if name in results}
     else:
         if len(results) == 0:
-            raise ValueError("no results to stack")
+            raise ShearError("no results to stack")
         stacked = {
             name: np.concatenate([np.atleast_1d(r[name]) for r in results])
             for name in METACAL_TYPES
@@ -123,10 +124,15 @@ def stack_results(results: Results) -> dict[str, np.ndarray]:
         }
     missing = set(METACAL_TYPES) - set(stacked)
     if missing:
-        raise ValueError(f"metacal types {sorted(missing)} are missing from the results")
+        raise ShearError(
+            f"metacal types {sorted(missing)} are missing from the results", value=sorted(missing)
+        )
     lengths = {len(cat) for cat in stacked.values()}
     if len(lengths) != 1:
-        raise ValueError(f"metacal types have different numbers of objects: {sorted(lengths)}")
+        raise ShearError(
+            f"metacal types have different numbers of objects: {sorted(lengths)}",
+            value=sorted(lengths),
+        )
     return stacked
 
 
@@ -199,11 +205,13 @@ def jackknife(
     Rows ``group k, ..., group k + group - 1`` always fall in the same block."""
     n_objects = len(terms)
     if group < 1:
-        raise ValueError(f"group must be >= 1, got {group}")
+        raise CellCoaddRangeError(f"group must be >= 1, got {group}", value=group, low=1)
     n_groups = -(-n_objects // group)
     n_blocks = min(n_blocks, n_groups)
     if n_blocks < 2:
-        raise ValueError(f"a jackknife needs at least 2 groups of objects, got {n_groups}")
+        raise ShearError(
+            f"a jackknife needs at least 2 groups of objects, got {n_groups}", value=n_groups
+        )
     labels = (np.arange(n_objects) // group) * n_blocks // n_groups
     block_sums = np.zeros((n_blocks, terms.shape[1]))
     np.add.at(block_sums, labels, terms)
@@ -318,7 +326,7 @@ def multiplicative_bias(
     """
     plus_cats, minus_cats = stack_results(plus), stack_results(minus)
     if len(plus_cats["noshear"]) != len(minus_cats["noshear"]):
-        raise ValueError("plus and minus catalogues must hold the same objects (same length)")
+        raise ShearError("plus and minus catalogues must hold the same objects (same length)")
     terms = np.hstack(
         [
             _contributions(plus_cats, step, selection),

@@ -21,6 +21,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from cellcoadd.errors import ConfigError
+
 
 class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -54,9 +56,16 @@ class PsfConfig(_Frozen):
     @model_validator(mode="after")
     def _check_range(self) -> PsfConfig:
         if not self.fwhm_min < self.fwhm_max:
-            raise ValueError(f"fwhm_min ({self.fwhm_min}) must be below fwhm_max ({self.fwhm_max})")
+            raise ConfigError(
+                f"fwhm_min ({self.fwhm_min}) must be below fwhm_max ({self.fwhm_max})",
+                value=(self.fwhm_min, self.fwhm_max),
+            )
         if self.fwhm_sigma == 0 and not self.fwhm_min <= self.fwhm_mean <= self.fwhm_max:
-            raise ValueError("a fixed FWHM (fwhm_sigma = 0) must lie in [fwhm_min, fwhm_max]")
+            raise ConfigError(
+                "a fixed FWHM (fwhm_sigma = 0) must lie in [fwhm_min, fwhm_max]",
+                value=self.fwhm_mean,
+                allowed=(self.fwhm_min, self.fwhm_max),
+            )
         return self
 
 
@@ -110,9 +119,9 @@ class GalaxyConfig(_Frozen):
     @model_validator(mode="after")
     def _check_ranges(self) -> GalaxyConfig:
         if not self.mag_min < self.mag_max:
-            raise ValueError("mag_min must be below mag_max")
+            raise ConfigError("mag_min must be below mag_max", value=(self.mag_min, self.mag_max))
         if not self.hlr_min < self.hlr_max:
-            raise ValueError("hlr_min must be below hlr_max")
+            raise ConfigError("hlr_min must be below hlr_max", value=(self.hlr_min, self.hlr_max))
         return self
 
 
@@ -199,9 +208,12 @@ class FieldConfig(_Frozen):
     @model_validator(mode="after")
     def _check(self) -> FieldConfig:
         if 2 * self.edge_pixels >= min(self.ccd_nx, self.ccd_ny):
-            raise ValueError("edge_pixels leaves no valid pixels on a CCD")
+            raise ConfigError("edge_pixels leaves no valid pixels on a CCD", value=self.edge_pixels)
         if not self.star_mag_min <= self.star_mag_max:
-            raise ValueError("star_mag_min must not exceed star_mag_max")
+            raise ConfigError(
+                "star_mag_min must not exceed star_mag_max",
+                value=(self.star_mag_min, self.star_mag_max),
+            )
         return self
 
 
@@ -251,5 +263,5 @@ class SimConfig(_Frozen):
     @model_validator(mode="after")
     def _check_shear(self) -> SimConfig:
         if self.shear[0] ** 2 + self.shear[1] ** 2 >= 1.0:
-            raise ValueError(f"|shear| must be below 1, got {self.shear}")
+            raise ConfigError(f"|shear| must be below 1, got {self.shear}", value=self.shear)
         return self

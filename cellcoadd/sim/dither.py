@@ -21,6 +21,8 @@ from typing import Literal
 
 import numpy as np
 
+from cellcoadd.errors import CellCoaddValueError
+
 DitherPattern = Literal["random", "spiral", "none"]
 DitherRegion = Literal["disk", "hexagon"]
 RotationMode = Literal["random", "none"]
@@ -57,7 +59,9 @@ def spiral_offsets(
     linearly with angle up to ``max_radius``; visit ``k`` uses position ``k mod n_points``.
     """
     if n_points < 1 or n_coils < 1:
-        raise ValueError("n_points and n_coils must be positive")
+        raise CellCoaddValueError(
+            "n_points and n_coils must be positive", value=(n_points, n_coils)
+        )
     step = np.arange(1, n_points + 1) / n_points
     angle = 2.0 * np.pi * n_coils * step
     radius = max_radius * step
@@ -114,9 +118,17 @@ def dither_offsets(
         (the field simulation).
     """
     if pattern not in ("random", "spiral", "none"):
-        raise ValueError(f"unknown dither pattern {pattern!r}; use 'random', 'spiral' or 'none'")
+        raise CellCoaddValueError(
+            f"unknown dither pattern {pattern!r}; use 'random', 'spiral' or 'none'",
+            value=pattern,
+            allowed=("random", "spiral", "none"),
+        )
     if region not in ("hexagon", "disk"):
-        raise ValueError(f"unknown dither region {region!r}; use 'hexagon' or 'disk'")
+        raise CellCoaddValueError(
+            f"unknown dither region {region!r}; use 'hexagon' or 'disk'",
+            value=region,
+            allowed=("hexagon", "disk"),
+        )
     if pattern == "none" or n_visits == 0:
         return np.zeros((n_visits, 2))
     if region == "disk":
@@ -136,4 +148,8 @@ def visit_rotations(n_visits: int, mode: RotationMode, rng: np.random.Generator)
         return rng.uniform(0.0, 2.0 * np.pi, n_visits)
     if mode == "none":
         return np.zeros(n_visits)
-    raise ValueError(f"unknown rotation mode {mode!r}; use 'random' or 'none'")
+    raise CellCoaddValueError(
+        f"unknown rotation mode {mode!r}; use 'random' or 'none'",
+        value=mode,
+        allowed=("random", "none"),
+    )

@@ -26,6 +26,7 @@ import numpy as np
 from astropy.table import Table
 from tqdm import tqdm
 
+from cellcoadd.errors import CellCoaddValueError
 from cellcoadd.geometry import Box, SkyMap, SkyMapConfig, Tract
 from cellcoadd.geometry.wcs_utils import local_jacobian
 from cellcoadd.model.exposure import Exposure
@@ -130,7 +131,7 @@ def simulate_field(
         Show a progress bar over visits.
     """
     if n_visits < 0 or seed < 0:
-        raise ValueError("n_visits and seed must be non-negative")
+        raise CellCoaddValueError("n_visits and seed must be non-negative", value=(n_visits, seed))
     tract = skymap[tract_id]
     patch = tract.patch(*patch_index)
     truth = _catalogue(config, tract, patch.outer_bbox, seed, sampler)

@@ -34,6 +34,7 @@ import numpy as np
 from astropy.wcs import WCS, Sip
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from cellcoadd.errors import GeometryError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import tan_wcs
 from cellcoadd.sim.config import FieldConfig
@@ -228,8 +229,9 @@ class FocalPlaneConfig(BaseModel):
         np.fill_diagonal(overlap, False)
         if overlap.any():
             first, second = np.argwhere(overlap)[0]
-            raise ValueError(
-                f"detectors {self.detectors[first].name} and {self.detectors[second].name} overlap"
+            raise GeometryError(
+                f"detectors {self.detectors[first].name} and {self.detectors[second].name} overlap",
+                value=(self.detectors[first].name, self.detectors[second].name),
             )
         return self
 
@@ -349,7 +351,10 @@ def lsst_focal_plane(
     """
     ccd_mm = ccd_pixels * pixel_size_um * 1e-3
     if ccd_pitch_mm < ccd_mm or raft_pitch_mm < 2 * ccd_pitch_mm + ccd_mm:
-        raise ValueError("CCD or raft pitch too small: detectors would overlap")
+        raise GeometryError(
+            "CCD or raft pitch too small: detectors would overlap",
+            value=(ccd_pitch_mm, raft_pitch_mm),
+        )
     detectors: list[Detector] = []
     for raft_y in range(5):
         for raft_x in range(5):

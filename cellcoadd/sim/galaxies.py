@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
+from cellcoadd.errors import CellCoaddValueError
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
 from cellcoadd.sim.config import GalaxyConfig
 
@@ -93,7 +94,9 @@ def draw_galaxy_properties(
     if sampler is not None:
         mag, hlr = (np.asarray(a, dtype=float) for a in sampler(rng, n))
         if mag.shape != (n,) or hlr.shape != (n,) or not np.all(hlr > 0):
-            raise ValueError("a galaxy sampler must return n magnitudes and n positive sizes")
+            raise CellCoaddValueError(
+                "a galaxy sampler must return n magnitudes and n positive sizes"
+            )
     else:
         mag = _truncated_normal(rng, n, config.mag_mean, config.mag_sigma, config)
         median = config.hlr_median * 10.0 ** (config.hlr_mag_slope * (mag - config.mag_mean))

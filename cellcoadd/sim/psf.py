@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRuntimeError
 from cellcoadd.model.psf_profiles import VaryingPsf
 from cellcoadd.sim.config import PsfConfig
 
@@ -56,7 +57,7 @@ def truncated_lognormal(
         good = (values >= low) & (values <= high)
         out[todo[good]] = values[good]
         todo = todo[~good]
-    raise RuntimeError(f"log-normal({mean}, {sigma}) rarely falls in [{low}, {high}]")
+    raise CellCoaddRuntimeError(f"log-normal({mean}, {sigma}) rarely falls in [{low}, {high}]")
 
 
 def draw_psf_parameters(config: PsfConfig, rng: np.random.Generator, n: int) -> PsfParameters:

@@ -26,6 +26,7 @@ import galsim
 import numpy as np
 from astropy.table import Table
 
+from cellcoadd.errors import CellCoaddValueError
 from cellcoadd.geometry.wcs_utils import local_jacobian, tan_wcs
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.sim.config import SimConfig, WcsVariationConfig
@@ -271,7 +272,9 @@ def simulate_stamps(
     list of StampObject
     """
     if n_objects < 0 or seed < 0:
-        raise ValueError("n_objects and seed must be non-negative")
+        raise CellCoaddValueError(
+            "n_objects and seed must be non-negative", value=(n_objects, seed)
+        )
     return [
         simulate_object(config, seed, index, shear, add_noise=add_noise, sampler=sampler)
         for index in range(first_index, first_index + n_objects)

@@ -41,6 +41,7 @@ from cellcoadd.builder.kernels.lanczos import (
     check_positions,
     fill_table,
 )
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
 
 
 @numba.njit(cache=True, inline="always")
@@ -222,17 +223,20 @@ def accumulate_warped(
     """
     pixels = np.asarray(pixels)
     if pixels.ndim != 3 or pixels.dtype != np.float64:
-        raise ValueError(f"pixels must be a 3-D float64 array, got {pixels.dtype} {pixels.shape}")
+        raise CellCoaddValueError(
+            f"pixels must be a 3-D float64 array, got {pixels.dtype} {pixels.shape}",
+            value=(pixels.dtype, pixels.shape),
+        )
     n_planes = pixels.shape[2]
     x_src, y_src = check_positions(x_src, y_src, pixels.shape[:2])
     out_shape = (n_planes, *x_src.shape)
     if not isinstance(out, np.ndarray) or out.dtype != np.float64 or out.shape != out_shape:
-        raise ValueError(f"out must be a float64 array of shape {out_shape}")
+        raise CellCoaddValueError(f"out must be a float64 array of shape {out_shape}")
     if not out.flags.c_contiguous or not out.flags.writeable:
-        raise ValueError("out must be C-contiguous and writeable")
+        raise CellCoaddValueError("out must be C-contiguous and writeable")
     weights = np.asarray(plane_weights, dtype=np.float64)
     if weights.shape != (n_planes,) or not np.isfinite(weights).all():
-        raise ValueError(f"plane_weights must be {n_planes} finite numbers")
+        raise CellCoaddValueError(f"plane_weights must be {n_planes} finite numbers")
     if scales is None:
         scales = np.ones((1, 1, 1))
     scales = np.ascontiguousarray(scales, dtype=np.float64)
@@ -240,9 +244,13 @@ def accumulate_warped(
     if plane_scales is not None:
         which = np.asarray(plane_scales, dtype=np.int64)
         if scales.shape[1:] != x_src.shape or which.shape != (n_planes,):
-            raise ValueError("scales must be (S, ny_out, nx_out) with one index per plane")
+            raise CellCoaddValueError("scales must be (S, ny_out, nx_out) with one index per plane")
         if which.min() < -1 or which.max() >= scales.shape[0]:
-            raise ValueError(f"plane_scales must lie in [-1, {scales.shape[0] - 1}]")
+            raise CellCoaddRangeError(
+                f"plane_scales must lie in [-1, {scales.shape[0] - 1}]",
+                low=-1,
+                high=scales.shape[0] - 1,
+            )
     if x_src.size and n_planes:
         flat_pixels = np.ascontiguousarray(pixels).reshape(-1)
         resample_interleaved(

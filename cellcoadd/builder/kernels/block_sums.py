@@ -56,11 +56,14 @@ def _int(value: int) -> ir.Constant:
 
 
 def _tree(builder: ir.IRBuilder, terms: list[ir.Value]) -> ir.Value:
-    """``((t0 + t1) + (t2 + t3)) + (t4 + t5)``: the order of every six-term sum."""
-    return builder.fadd(
-        builder.fadd(builder.fadd(terms[0], terms[1]), builder.fadd(terms[2], terms[3])),
-        builder.fadd(terms[4], terms[5]),
-    )
+    """The sum of ``terms`` in the order of every tap sum: adjacent pairs, repeatedly (an
+    odd last term waits for the next round); for six taps
+    ``((t0 + t1) + (t2 + t3)) + (t4 + t5)``, as
+    :func:`cellcoadd.builder.kernels.reference.tap_sum`."""
+    while len(terms) > 1:
+        pairs = [builder.fadd(terms[k], terms[k + 1]) for k in range(0, len(terms) - 1, 2)]
+        terms = pairs + terms[len(pairs) * 2 :]
+    return terms[0]
 
 
 def _splat(builder: ir.IRBuilder, value: ir.Value, width: int) -> ir.Value:

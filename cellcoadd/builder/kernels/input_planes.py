@@ -15,11 +15,14 @@ import math
 import numba
 import numpy as np
 
+from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.noise import first_words, noise_key, normal_from_word
-from cellcoadd.builder.kernels.warp import KERNEL_HALF_WIDTH
 from cellcoadd.geometry.box import Box
 
 _GROUP = 8  # output pixels per side of the groups whose taps are bounded together
+# the taps of a position v: floor(v) + _FIRST_OFFSET .. floor(v) + _LAST_OFFSET
+_FIRST_OFFSET = WARP_KERNEL.first_offset
+_LAST_OFFSET = WARP_KERNEL.last_offset
 
 
 @numba.njit(cache=True)
@@ -51,11 +54,10 @@ def _read_spans(
                     x_max = max(x_max, x[row, col])
                     y_min = min(y_min, y[row, col])
                     y_max = max(y_max, y[row, col])
-            # Lanczos taps of a position v: floor(v) - (a - 1) .. floor(v) + a
-            x_lo = max(int(math.floor(x_min)) - (KERNEL_HALF_WIDTH - 1) - x_start, 0)
-            x_hi = min(int(math.floor(x_max)) + KERNEL_HALF_WIDTH + 1 - x_start, n_box_cols)
-            y_lo = max(int(math.floor(y_min)) - (KERNEL_HALF_WIDTH - 1) - y_start, 0)
-            y_hi = min(int(math.floor(y_max)) + KERNEL_HALF_WIDTH + 1 - y_start, n_box_rows)
+            x_lo = max(int(math.floor(x_min)) + _FIRST_OFFSET - x_start, 0)
+            x_hi = min(int(math.floor(x_max)) + _LAST_OFFSET + 1 - x_start, n_box_cols)
+            y_lo = max(int(math.floor(y_min)) + _FIRST_OFFSET - y_start, 0)
+            y_hi = min(int(math.floor(y_max)) + _LAST_OFFSET + 1 - y_start, n_box_rows)
             for row in range(y_lo, y_hi):
                 first[row] = min(first[row], x_lo)
                 stop[row] = max(stop[row], x_hi)

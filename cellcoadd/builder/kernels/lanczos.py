@@ -20,10 +20,16 @@ import math
 import numba
 import numpy as np
 
-KERNEL_HALF_WIDTH = 3
+from cellcoadd.builder.kernels.descriptor import LANCZOS3
+from cellcoadd.errors import CellCoaddValueError
+
+KERNEL_HALF_WIDTH = LANCZOS3.half_width
 """Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
 
-N_TAPS = 2 * KERNEL_HALF_WIDTH
+N_TAPS = LANCZOS3.taps
+"""Taps per axis; numba takes module-level ints as compile-time constants."""
+
+_FIRST_OFFSET = LANCZOS3.first_offset
 _INTEGER_TOLERANCE = 1e-9  # px; closer offsets are taken as exact integers
 _PI_OVER_3 = math.pi / 3.0
 # Taylor coefficients of sin(a) / a and of sqrt(3) cos(a) in powers of a^2, applied as
@@ -53,7 +59,7 @@ def _sin_sqrt3_cos(angle: float) -> tuple[float, float]:
 
 
 @numba.njit(cache=True, inline="always")
-def _lanczos_taps(
+def lanczos_taps(
     position: float,
 ) -> tuple[float, float, float, float, float, float, float, float]:
     """Normalised Lanczos-3 weights of the six taps of one position, its floor, exact tap.
@@ -139,28 +145,34 @@ def checked_positions_and_taps(
     y_src = np.asarray(y_src)
     for name, values in (("x_src", x_src), ("y_src", y_src)):
         if values.ndim != 2:
-            raise ValueError(f"{name} must be 2-D (ny_out, nx_out), got shape {values.shape}")
+            raise CellCoaddValueError(
+                f"{name} must be 2-D (ny_out, nx_out), got shape {values.shape}", value=values.shape
+            )
         if values.dtype != np.float64:
-            raise ValueError(f"{name} must be float64, got {values.dtype}")
+            raise CellCoaddValueError(
+                f"{name} must be float64, got {values.dtype}", value=values.dtype
+            )
     if x_src.shape != y_src.shape:
-        raise ValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
+        raise CellCoaddValueError(f"x_src {x_src.shape} and y_src {y_src.shape} differ in shape")
     if x_src.size == 0:
         return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (0, 0, 0, 0)
     # min and max propagate NaN and expose infinities: one pass each checks both.
     ranges = [(float(values.min()), float(values.max())) for values in (x_src, y_src)]
     if not all(math.isfinite(bound) for bounds in ranges for bound in bounds):
-        raise ValueError("x_src and y_src must be finite")
+        raise CellCoaddValueError("x_src and y_src must be finite")
     ny_in, nx_in = input_shape
     taps = []
     for axis, (low, high), size in (("x", ranges[0], nx_in), ("y", ranges[1], ny_in)):
-        first_tap = math.floor(low) - (KERNEL_HALF_WIDTH - 1)
-        last_tap = math.floor(high) + KERNEL_HALF_WIDTH
-        if first_tap < 0 or last_tap > size - 1:
-            raise ValueError(
-                f"kernel taps along {axis} span input pixels [{first_tap}, {last_tap}] "
-                f"but the input has pixels [0, {size - 1}]"
+        first_tap, stop_tap = LANCZOS3.tap_range(low, high)
+        if first_tap < 0 or stop_tap > size:
+            raise CellCoaddValueError(
+                f"kernel taps along {axis} span input pixels [{first_tap}, {stop_tap - 1}] "
+                f"but the input has pixels [0, {size - 1}]",
+                value=(first_tap, stop_tap - 1),
+                allowed=(0, size - 1),
             )
-        taps += [first_tap, last_tap - (2 * KERNEL_HALF_WIDTH - 1)]
+        # the first taps of the lowest and of the highest position
+        taps += [first_tap, stop_tap - N_TAPS]
     x_lo, x_hi, y_lo, y_hi = taps
     return np.ascontiguousarray(x_src), np.ascontiguousarray(y_src), (x_lo, x_hi, y_lo, y_hi)
 
@@ -178,9 +190,9 @@ _FLOOR_Y, _EXACT_Y = WEIGHT_Y + N_TAPS, WEIGHT_Y + N_TAPS + 1
 
 @numba.njit(cache=True, error_model="numpy")
 def _axis_table(positions: np.ndarray, table: np.ndarray, base: int) -> None:
-    """``table[base + j, i]``: the ``j``-th value of ``_lanczos_taps(positions[i])``."""
+    """``table[base + j, i]``: the ``j``-th value of ``lanczos_taps(positions[i])``."""
     for i in range(positions.shape[0]):
-        w0, w1, w2, w3, w4, w5, floor_position, exact = _lanczos_taps(positions[i])
+        w0, w1, w2, w3, w4, w5, floor_position, exact = lanczos_taps(positions[i])
         table[base, i] = w0
         table[base + 1, i] = w1
         table[base + 2, i] = w2
@@ -206,7 +218,7 @@ def fill_table(
     y_src)`` (1-D, at most ``TABLE_WIDTH`` long).
 
     Fills ``table`` (``(TABLE_ROWS, TABLE_WIDTH)``: rows 0-5 the x weights of
-    :func:`_lanczos_taps`, 6 floor(x), 7 the exact x tap or -1; 8-15 the same for y) and,
+    :func:`lanczos_taps`, 6 floor(x), 7 the exact x tap or -1; 8-15 the same for y) and,
     for input pixel ``(x, y)`` stored at flat index ``(y - origin[1]) row_stride + (x -
     origin[0]) tap_stride``, ``corners[i]``: the index of the first tap (top left of the
     6x6 footprint); ``sources[i]``: the index of the input pixel the output pixel
@@ -217,8 +229,8 @@ def fill_table(
     _axis_table(y_src, table, WEIGHT_Y)
     x0, y0 = origin
     for i in range(n):
-        first_x = np.int64(table[_FLOOR_X, i]) - (KERNEL_HALF_WIDTH - 1) - x0
-        first_y = np.int64(table[_FLOOR_Y, i]) - (KERNEL_HALF_WIDTH - 1) - y0
+        first_x = np.int64(table[_FLOOR_X, i]) + _FIRST_OFFSET - x0
+        first_y = np.int64(table[_FLOOR_Y, i]) + _FIRST_OFFSET - y0
         corners[i] = first_y * row_stride + first_x * tap_stride
         exact_x = table[_EXACT_X, i]
         exact_y = table[_EXACT_Y, i]

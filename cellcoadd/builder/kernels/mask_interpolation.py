@@ -75,6 +75,8 @@ import math
 import numba
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
+
 DEFAULT_SIGMA = 1.0
 """Default Gaussian width of the interpolation weights (pixels)."""
 
@@ -250,13 +252,17 @@ def fill_bad_pixels(
 def check_arguments(bad: np.ndarray, sigma: float, max_radius: int, max_leverage: float) -> None:
     """Raise ``ValueError`` unless ``bad`` is a 2-D bool array and the settings are valid."""
     if not isinstance(bad, np.ndarray) or bad.ndim != 2 or bad.dtype != np.bool_:
-        raise ValueError("bad must be a 2-D bool array")
+        raise CellCoaddValueError("bad must be a 2-D bool array")
     if not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be finite and positive, got {sigma}")
+        raise CellCoaddValueError(f"sigma must be finite and positive, got {sigma}", value=sigma)
     if int(max_radius) != max_radius or max_radius < 1:
-        raise ValueError(f"max_radius must be an integer >= 1, got {max_radius}")
+        raise CellCoaddRangeError(
+            f"max_radius must be an integer >= 1, got {max_radius}", value=max_radius, low=1
+        )
     if not max_leverage >= 0:
-        raise ValueError(f"max_leverage must be >= 0, got {max_leverage}")
+        raise CellCoaddRangeError(
+            f"max_leverage must be >= 0, got {max_leverage}", value=max_leverage, low=0
+        )
 
 
 def interpolate_bad_pixels(
@@ -308,9 +314,11 @@ def interpolate_bad_pixels(
         or not pixels.flags.c_contiguous
         or not pixels.flags.writeable
     ):
-        raise ValueError("pixels must be a writeable C-contiguous float64 array (ny, nx, P)")
+        raise CellCoaddValueError(
+            "pixels must be a writeable C-contiguous float64 array (ny, nx, P)"
+        )
     if pixels.shape[:2] != bad.shape:
-        raise ValueError(f"pixels {pixels.shape} and bad {bad.shape} disagree")
+        raise CellCoaddValueError(f"pixels {pixels.shape} and bad {bad.shape} disagree")
     if not bad.any():
         return np.zeros(bad.shape, dtype=bool)
     ratio = np.ones(bad.shape)

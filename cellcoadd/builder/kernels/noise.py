@@ -30,6 +30,7 @@ import math
 import numba
 import numpy as np
 
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
 from cellcoadd.geometry.box import Box
 
 _MASK32 = np.uint64(0xFFFFFFFF)
@@ -250,7 +251,11 @@ def noise_key(seed: int, visit: int, detector: int) -> tuple[np.uint64, np.uint6
     """
     for name, value in (("seed", seed), ("visit", visit), ("detector", detector)):
         if int(value) < 0:
-            raise ValueError(f"{name} must be non-negative to key the noise generator: {value}")
+            raise CellCoaddRangeError(
+                f"{name} must be non-negative to key the noise generator: {value}",
+                value=value,
+                low=0,
+            )
     words = np.random.SeedSequence([int(seed), int(visit), int(detector)]).generate_state(2)
     return np.uint64(words[0]), np.uint64(words[1])
 
@@ -274,9 +279,11 @@ def standard_normal_field(
         box.y_start + j)``, the same value whatever box it is asked in.
     """
     if box.x_start < 0 or box.y_start < 0:
-        raise ValueError(f"noise lives on the exposure grid (>= 0), got {box}")
+        raise CellCoaddValueError(f"noise lives on the exposure grid (>= 0), got {box}", value=box)
     if realization < 0:
-        raise ValueError(f"realization must be non-negative: {realization}")
+        raise CellCoaddRangeError(
+            f"realization must be non-negative: {realization}", value=realization, low=0
+        )
     k0, k1 = noise_key(seed, visit, detector)
     out = np.empty(box.shape)
     _fill_normals(out, box.x_start, box.y_start, int(realization), k0, k1)

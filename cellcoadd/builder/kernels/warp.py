@@ -45,6 +45,7 @@ from cellcoadd.builder.kernels.lanczos import (
     check_positions,
     checked_positions_and_taps,
 )
+from cellcoadd.errors import CellCoaddValueError
 
 __all__ = [
     "KERNEL_HALF_WIDTH",
@@ -108,9 +109,13 @@ def warp_planes(
     """
     planes = np.asarray(planes)
     if planes.ndim != 3:
-        raise ValueError(f"planes must be 3-D (P, ny_in, nx_in), got shape {planes.shape}")
+        raise CellCoaddValueError(
+            f"planes must be 3-D (P, ny_in, nx_in), got shape {planes.shape}", value=planes.shape
+        )
     if planes.dtype not in (np.float32, np.float64):
-        raise ValueError(f"planes must be float32 or float64, got {planes.dtype}")
+        raise CellCoaddValueError(
+            f"planes must be float32 or float64, got {planes.dtype}", value=planes.dtype
+        )
     x_src, y_src, (x_lo, x_hi, y_lo, y_hi) = checked_positions_and_taps(
         x_src, y_src, planes.shape[1:]
     )
@@ -119,19 +124,22 @@ def warp_planes(
     if out is None:
         out = np.zeros(out_shape, dtype=np.float64)
     elif not isinstance(out, np.ndarray) or out.dtype != np.float64 or out.shape != out_shape:
-        raise ValueError(f"out must be a float64 array of shape {out_shape}")
+        raise CellCoaddValueError(f"out must be a float64 array of shape {out_shape}")
     elif not out.flags.c_contiguous or not out.flags.writeable:
-        raise ValueError("out must be C-contiguous and writeable")
+        raise CellCoaddValueError("out must be C-contiguous and writeable")
     weight = float(weight)
     if not math.isfinite(weight):
-        raise ValueError(f"weight must be finite, got {weight}")
+        raise CellCoaddValueError(f"weight must be finite, got {weight}", value=weight)
     if scale is None:
         scales = np.ones((1, 1, 1))
         which = np.full(n_planes, -1, dtype=np.int64)
     else:
         scale_array = np.ascontiguousarray(scale, dtype=np.float64)
         if scale_array.shape != x_src.shape:
-            raise ValueError(f"scale has shape {scale_array.shape}, expected {x_src.shape}")
+            raise CellCoaddValueError(
+                f"scale has shape {scale_array.shape}, expected {x_src.shape}",
+                value=scale_array.shape,
+            )
         scales = scale_array[np.newaxis]
         which = np.zeros(n_planes, dtype=np.int64)
     if x_src.size == 0 or n_planes == 0:

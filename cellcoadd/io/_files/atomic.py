@@ -21,13 +21,16 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
+from cellcoadd.errors import CellCoaddFileExistsError, CellCoaddFileNotFoundError
 from cellcoadd.io._files.disk_space import disk_full_error
 from cellcoadd.io._files.writeback import EarlyWriteback
 
 
 def exists_error(target: str | os.PathLike[str]) -> FileExistsError:
     """The error of a write that would replace ``target`` without ``overwrite``."""
-    return FileExistsError(f"{os.fspath(target)} exists; pass overwrite=True to replace it")
+    return CellCoaddFileExistsError(
+        f"{os.fspath(target)} exists; pass overwrite=True to replace it", path=target
+    )
 
 
 def _host_tag() -> str:
@@ -130,7 +133,7 @@ def atomic_write(
         raise exists_error(target)
     directory = target.parent
     if not directory.is_dir():
-        raise FileNotFoundError(f"{directory}: no such directory")
+        raise CellCoaddFileNotFoundError(f"{directory}: no such directory", path=directory)
     remove_stale_temporaries(target)
     temporary = directory / temporary_name(target)
     if prepare is not None:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import errno
 import os
 
+from cellcoadd.errors import CellCoaddOSError
+
 #: Free space (bytes) below which a failed write is blamed on a full disk.
 DISK_FULL_MARGIN = 1 << 20
 
@@ -31,11 +33,11 @@ def check_free_space(target: str | os.PathLike[str], needed: int) -> None:
         return
     free = stats.f_bavail * stats.f_frsize
     if free < needed:
-        raise OSError(
-            errno.ENOSPC,
+        raise CellCoaddOSError(
             f"disk full: writing needs up to {needed} bytes but only {free} are free in "
             f"{directory}; nothing was written",
-            os.fspath(target),
+            errno=errno.ENOSPC,
+            path=target,
         )
 
 
@@ -63,11 +65,11 @@ def disk_full_error(target: str | os.PathLike[str], error: BaseException) -> OSE
     if not full and (free is None or free >= DISK_FULL_MARGIN):
         return None
     where = f"{directory} has {free} bytes free" if free is not None else directory
-    return OSError(
-        errno.ENOSPC,
+    return CellCoaddOSError(
         f"disk full or quota exceeded while writing ({where}); nothing was written and any "
         f"previous file is unchanged [{type(error).__name__}: {_first_line(text)}]",
-        os.fspath(target),
+        errno=errno.ENOSPC,
+        path=target,
     )
 
 

@@ -1,34 +1,96 @@
-"""Guards of every patch-file read: the path must be a non-empty regular file, and any
-library failure becomes a :class:`~cellcoadd.errors.CellCoaddFormatError` naming it."""
+"""Guards of every patch-file read: the path must be a non-empty regular file, and a
+failure that a damaged, truncated or foreign file can cause becomes a
+:class:`~cellcoadd.errors.CellCoaddFormatError` naming it. A programming error (an
+``AttributeError``, a ``NameError``, a ``TypeError`` raised by our own code, ...) is not a
+damaged file: it passes through unchanged."""
 
 from __future__ import annotations
 
 import os
+import struct
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddError, CellCoaddFileNotFoundError, CellCoaddFormatError
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
+
+#: What the libraries under a reader (fitsio/CFITSIO, h5py/HDF5, numpy, json, astropy,
+#: pydantic) raise on bytes they cannot use, and our own checks: always a file failure.
+FILE_FAILURES: tuple[type[BaseException], ...] = (
+    CellCoaddError,  # our checks: DamagedDataError, a read cell that is not a valid coadd
+    OSError,  # CFITSIO errors (fitsio), HDF5 file and I/O errors (h5py), short reads
+    EOFError,
+    ValueError,  # bytes that do not parse: UTF-8, JSON, pydantic validation, numpy shapes
+    KeyError,  # a missing header keyword, HDF5 object (h5py) or JSON member
+    IndexError,  # a missing HDU, row or column
+    OverflowError,  # a stored number too large for its type
+    struct.error,
+    zlib.error,
+)
+
+#: Raised by a library on data it cannot use (h5py maps some HDF5 failures, e.g. a bad
+#: object-header checksum, to RuntimeError, and stored types it cannot convert to
+#: TypeError), but by our own code only on a bug: a file failure only when raised inside
+#: a library.
+LIBRARY_FAILURES: tuple[type[BaseException], ...] = (TypeError, RuntimeError)
+
+#: The cellcoadd package directory: code raising from under it is ours.
+_PACKAGE = str(Path(__file__).resolve().parents[2]) + os.sep
+
+
+def is_file_failure(error: BaseException) -> bool:
+    """Whether ``error``, raised while reading a file, is the file's fault (damaged,
+    truncated or foreign) rather than a programming error.
+
+    True for :data:`FILE_FAILURES`, and for :data:`LIBRARY_FAILURES` raised inside a
+    library (the innermost frame of the traceback is not cellcoadd's own code).
+    """
+    if isinstance(error, FILE_FAILURES):
+        return True
+    return isinstance(error, LIBRARY_FAILURES) and not _raised_by_cellcoadd(error)
+
+
+def _raised_by_cellcoadd(error: BaseException) -> bool:
+    frame = error.__traceback__
+    if frame is None:  # not raised yet: cannot tell, so not blamed on the file
+        return True
+    while frame.tb_next is not None:
+        frame = frame.tb_next
+    return frame.tb_frame.f_code.co_filename.startswith(_PACKAGE)
+
+
+def _facts(error: BaseException) -> dict[str, Any]:
+    """The HDU, exposure and cell an inner check named, for the format error."""
+    if not isinstance(error, CellCoaddError):
+        return {}
+    names = ("hdu", "visit", "detector", "cell")
+    return {name: getattr(error, name) for name in names if getattr(error, name) is not None}
 
 
 @contextmanager
 def reading_errors(path: str, what: str) -> Iterator[None]:
-    """Turn any failure while reading ``what`` into a CellCoaddFormatError naming ``path``."""
+    """Turn a file failure (:func:`is_file_failure`) while reading ``what`` into a
+    CellCoaddFormatError naming ``path``; any other exception passes through."""
     try:
         yield
-    except CellCoaddFormatError:
+    except Exception as err:
         clear_cfitsio_messages()
-        raise
-    except Exception as err:  # a corrupted file may fail in any library call
-        clear_cfitsio_messages()
-        raise CellCoaddFormatError(path, f"{what}: {type(err).__name__}: {err}") from err
+        if isinstance(err, CellCoaddFormatError) or not is_file_failure(err):
+            raise
+        # our own checks say what is wrong; a library's error is named by its type
+        problem = f"{err}" if isinstance(err, CellCoaddError) else f"{type(err).__name__}: {err}"
+        raise CellCoaddFormatError(path, f"{what}: {problem}", **_facts(err)) from err
 
 
 def check_path_readable(path: str) -> int:
-    """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty
-    or not a regular file (a directory, a pipe or a device could block or mislead a reader)."""
+    """Size of ``path`` in bytes; CellCoaddFileNotFoundError if absent, CellCoaddFormatError
+    if empty or not a regular file (a directory, a pipe or a device could block or mislead a
+    reader)."""
     if not os.path.exists(path):
-        raise FileNotFoundError(f"{path}: no such file")
+        raise CellCoaddFileNotFoundError(f"{path}: no such file", path=path)
     if not os.path.isfile(path):
         raise CellCoaddFormatError(path, "not a regular file")
     size = os.path.getsize(path)

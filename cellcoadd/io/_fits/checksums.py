@@ -30,6 +30,7 @@ from typing import Any, BinaryIO
 import fitsio
 import numpy as np
 
+from cellcoadd.errors import DamagedDataError
 from cellcoadd.io._fits.paths import cfitsio_path
 
 #: Keyword of the CRC-32 of an HDU's data unit as stored.
@@ -97,29 +98,29 @@ def verify_hdu(stream: BinaryIO, offsets: dict[str, int]) -> None:
     stream.seek(start)
     header = stream.read(data_start - start)
     if len(header) != data_start - start or len(header) % 4:
-        raise ValueError("the file ends inside a header")
+        raise DamagedDataError("the file ends inside a header")
     datasum_text = _card_value(header, b"DATASUM =")
     if datasum_text is None or _card_value(header, b"CHECKSUM=") is None:
-        raise ValueError("checksum keywords CHECKSUM/DATASUM missing")
+        raise DamagedDataError("checksum keywords CHECKSUM/DATASUM missing")
     crc_text = _card_value(header, _DATACRC_KEY)
     datasum, crc, position = 0, 0, data_start
     while position < stop:
         chunk = stream.read(min(_CHUNK, stop - position))
         if not chunk or len(chunk) % 4:
-            raise ValueError("the file ends inside a data unit")
+            raise DamagedDataError("the file ends inside a data unit")
         datasum = ones_complement_sum(chunk, datasum)
         crc = zlib.crc32(chunk, crc)
         position += len(chunk)
     if not datasum_text.strip(b"' ").isdigit() or int(datasum_text.strip(b"' ")) != datasum:
-        raise ValueError("data checksum (DATASUM) mismatch: the data unit was changed")
+        raise DamagedDataError("data checksum (DATASUM) mismatch: the data unit was changed")
     if ones_complement_sum(header, datasum) not in (0, 0xFFFFFFFF):
-        raise ValueError("HDU checksum (CHECKSUM) mismatch: the header was changed")
+        raise DamagedDataError("HDU checksum (CHECKSUM) mismatch: the header was changed")
     if crc_text is None:
         return
     if not crc_text.isdigit() or int(crc_text) > 0xFFFFFFFF:
-        raise ValueError(f"{DATACRC} is not a CRC-32 value: {crc_text!r}")
+        raise DamagedDataError(f"{DATACRC} is not a CRC-32 value: {crc_text!r}")
     if crc != int(crc_text):
-        raise ValueError(
+        raise DamagedDataError(
             f"{DATACRC} mismatch (data unit CRC-32 {crc}, header {int(crc_text)}): "
             "the data were changed or their blocks reordered"
         )

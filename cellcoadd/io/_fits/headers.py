@@ -19,6 +19,8 @@ from typing import Any
 
 import fitsio
 
+from cellcoadd.io._files.read_checks import is_file_failure
+
 #: Bytes of a header card.
 CARD = 80
 #: Headers up to this many bytes (two FITS blocks, 72 cards) are read by fitsio, faster there.
@@ -49,8 +51,9 @@ def read_header(hdu: Any, descriptor: int | None) -> fitsio.FITSHDR:
     if cards is not None:
         try:
             return RawHeader(cards)
-        except Exception:  # a card fitsio's parser refuses: left to CFITSIO
-            pass
+        except Exception as err:  # a card fitsio's parser refuses: left to CFITSIO
+            if not is_file_failure(err):
+                raise
     return hdu.read_header()
 
 

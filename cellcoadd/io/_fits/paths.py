@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 
+from cellcoadd.errors import CellCoaddValueError
+
 
 def check_fits_path(path: str | os.PathLike[str]) -> str:
     """Refuse paths that CFITSIO would parse as extended file-name syntax, not as a file.
@@ -22,12 +24,18 @@ def check_fits_path(path: str | os.PathLike[str]) -> str:
     """
     name = os.fspath(path)
     if any(char in name for char in "[]()") or "://" in name:
-        raise ValueError(
+        raise CellCoaddValueError(
             f"{name}: FITS paths must not contain '[', ']', '(', ')' or '://' "
-            "(CFITSIO would read them as extended file-name syntax)"
+            "(CFITSIO would read them as extended file-name syntax)",
+            path=name,
+            value=name,
         )
     if name != name.rstrip():
-        raise ValueError(f"{name!r}: FITS paths must not end with blanks (CFITSIO strips them)")
+        raise CellCoaddValueError(
+            f"{name!r}: FITS paths must not end with blanks (CFITSIO strips them)",
+            path=name,
+            value=name,
+        )
     return name
 
 
@@ -39,7 +47,7 @@ def cfitsio_path(path: str | os.PathLike[str]) -> str:
     """
     name = check_fits_path(path)
     if not name:
-        raise ValueError("empty FITS path")
+        raise CellCoaddValueError("empty FITS path", value=name)
     return name if os.path.isabs(name) else os.path.join(".", name)
 
 

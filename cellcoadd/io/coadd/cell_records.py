@@ -8,13 +8,12 @@ from typing import Any
 
 from astropy.wcs import WCS
 
+from cellcoadd.errors import DamagedDataError
 from cellcoadd.geometry.box import Box
+from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchMetadata
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
-
-#: Pixel planes of a cell (besides the inputs table).
-PLANES = ("image", "mask", "variance", "mfrac", "noise", "psf")
 
 
 class WcsRecords:
@@ -68,28 +67,23 @@ def parse_cell_record(text: str | bytes) -> dict[str, Any]:
 
 def check_cell_geometry(metadata: PatchMetadata, identity: dict[str, Any]) -> None:
     """Refuse a cell identity whose boxes disagree with the sky map's cell geometry
-    (ValueError): the shapes of its planes follow from them, so a forged box could make a
+    (DamagedDataError): the shapes of its planes follow from them, so a forged box could make a
     reader allocate planes of any size."""
     config = metadata.skymap_config
     outer = config.cell_inner + 2 * config.cell_border
     inner_box, outer_box = identity["inner_bbox"], identity["outer_bbox"]
     if inner_box.shape != (config.cell_inner, config.cell_inner):
-        raise ValueError(f"inner box {inner_box} is not {config.cell_inner} pixels square")
+        raise DamagedDataError(f"inner box {inner_box} is not {config.cell_inner} pixels square")
     if outer_box.shape != (outer, outer) or outer_box.grow(-config.cell_border) != inner_box:
-        raise ValueError(
+        raise DamagedDataError(
             f"outer box {outer_box} is not the inner box {inner_box} grown by {config.cell_border}"
         )
 
 
 def expected_shapes(metadata: PatchMetadata, outer: Box) -> dict[str, tuple[int, ...]]:
-    """Array shape of every plane of a cell with outer box ``outer``."""
-    ny, nx = outer.shape
-    psf = metadata.psf_size
+    """Array shape of every plane (:data:`~cellcoadd.model.planes.PLANES`) of a cell with
+    outer box ``outer``."""
     return {
-        "image": (ny, nx),
-        "mask": (ny, nx),
-        "variance": (ny, nx),
-        "mfrac": (ny, nx),
-        "noise": (metadata.n_noise, ny, nx),
-        "psf": (psf, psf),
+        spec.name: spec.shape(outer.shape, metadata.n_noise, metadata.psf_size)
+        for spec in planes.PLANES
     }

@@ -7,6 +7,7 @@ from typing import Any
 
 from astropy.table import Table
 
+from cellcoadd.errors import CellCoaddKeyError
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchMetadata
@@ -42,7 +43,9 @@ class CoaddFile(abc.ABC):
     def _check_index(self, index: tuple[int, int]) -> tuple[int, int]:
         key = (int(index[0]), int(index[1]))
         if key not in self.cell_indices:
-            raise KeyError(f"{self.path}: no cell {key} in this file")
+            raise CellCoaddKeyError(
+                f"{self.path}: no cell {key} in this file", path=self.path, cell=key, value=key
+            )
         return key
 
     def read_inputs(self) -> Table:

@@ -5,11 +5,13 @@ HDU 0 (primary, no data) carries the identification and version keywords and
 walking every header to the end of the file, and fall back to that walk without it), HDU 1
 ``METADATA`` the metadata JSON as a uint8 image, HDU 2 ``CELLINDEX`` one row per cell
 (index, HDU numbers of its planes, identity JSON), then one HDU per (cell, plane) named
-``CELL_<+cx>_<+cy>_<PLANE>``. Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
+``CELL_<+cx>_<+cy>_<PLANE>``, planes in the order of :data:`~cellcoadd.model.planes.PLANES`
+followed by the inputs table. Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
 of its data unit as stored (see :mod:`cellcoadd.io._fits.checksums`), all verified on read
 when ``verify`` is true.
 
-With lossless compression the float32 planes are tile-compressed (GZIP_2) as int32 images
+With lossless compression (each plane's :attr:`~cellcoadd.model.planes.PlaneSpec.compression`)
+the float32 planes are tile-compressed (GZIP_2) as int32 images
 holding their IEEE-754 bit patterns (keyword ``CCBITS = 'FLOAT32'``): CFITSIO replaces every
 non-finite float by one NaN when tile-compressing floats, which would lose infinities and
 NaN payloads. The mask is RICE_1 compressed; the float64 PSF, the tables and the metadata
@@ -25,7 +27,7 @@ import fitsio
 import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddOSError, DamagedDataError
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits import direct as fits_direct
 from cellcoadd.io._fits.checksums import (
@@ -40,7 +42,6 @@ from cellcoadd.io._fits.direct import UnsupportedCard, card
 from cellcoadd.io._fits.paths import cfitsio_path, check_fits_path
 from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import (
-    PLANES,
     WcsRecords,
     cell_record_json,
     check_cell_geometry,
@@ -56,13 +57,12 @@ from cellcoadd.io.coadd.format_version import (
     sha256_hex,
 )
 from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 from cellcoadd.model.wcs_codec import wcs_to_record
 
-_FLOAT_PLANES = ("image", "variance", "mfrac", "noise")
-_HDU_COLUMNS = {plane: f"HDU_{plane.upper()}" for plane in (*PLANES, "inputs")}
 _FIRST_CELL_HDU = 3
 _FITS_MAGIC = b"SIMPLE  ="
 
@@ -72,11 +72,18 @@ def extname(index: tuple[int, int], plane: str) -> str:
     return f"CELL_{index[0]:+03d}_{index[1]:+03d}_{plane.upper()}"
 
 
+def hdu_column(plane: str) -> str:
+    """Column of ``CELLINDEX`` holding the HDU number of a cell's ``plane`` (or inputs)."""
+    return f"HDU_{plane.upper()}"
+
+
 def _cell_planes(n_noise: int) -> list[str]:
-    planes = ["image", "mask", "variance", "mfrac", "psf", "inputs"]
-    if n_noise > 0:
-        planes.insert(4, "noise")  # no zero-size images in FITS: K = 0 has no NOISE HDU
-    return planes
+    """The HDUs of a cell, in file order: its planes, then its inputs table."""
+    # no zero-size images in FITS: with K = 0 the per-realization planes have no HDU
+    return [
+        *(spec.name for spec in cell_planes.PLANES if n_noise > 0 or not spec.per_realization),
+        cell_planes.INPUTS,
+    ]
 
 
 def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
@@ -183,7 +190,9 @@ def _read_at(stream: BinaryIO, offset: int, size: int) -> bytes:
     while size > 0:
         chunk = stream.read(size)
         if not chunk:
-            raise OSError(f"{getattr(stream, 'name', 'file')}: ends before byte {offset + size}")
+            raise CellCoaddOSError(
+                f"{getattr(stream, 'name', 'file')}: ends before byte {offset + size}"
+            )
         chunks.append(chunk)
         size -= len(chunk)
     return b"".join(chunks)
@@ -195,14 +204,15 @@ def _index_table(
     records = [cell_record_json(cell, wcs_records) for cell in patch.cells.values()]
     width = max([1, *(len(text) for text in records)])
     dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
-    dtype += [(column, "<i4") for column in _HDU_COLUMNS.values()]
+    dtype += [(hdu_column(plane), "<i4") for plane in cell_planes.cell_objects()]
     dtype += [("CELL", f"S{width}")]
     table = np.zeros(len(records), dtype=dtype)
     for row, (index, text) in enumerate(zip(patch.cells, records, strict=True)):
         first = _FIRST_CELL_HDU + row * len(planes)
         table[row]["CELL_X"], table[row]["CELL_Y"] = index
-        for plane, column in _HDU_COLUMNS.items():
-            table[row][column] = first + planes.index(plane) if plane in planes else -1
+        for plane in cell_planes.cell_objects():
+            number = first + planes.index(plane) if plane in planes else -1
+            table[row][hdu_column(plane)] = number
         table[row]["CELL"] = text.encode("ascii")
     return table
 
@@ -215,10 +225,11 @@ class _CfitsioHdus:
         self.compress = compress
 
     def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
-        if self.compress and plane in _FLOAT_PLANES:
+        compression = cell_planes.plane(plane).compression if self.compress else "none"
+        if compression == "float_bits":
             keys = [*keys, {"name": "CCBITS", "value": "FLOAT32", "comment": "int32 = bits"}]
             _write_image(self.fits, data.view(np.int32), name, keys, compress="GZIP_2")
-        elif self.compress and plane == "mask":
+        elif compression == "integer":
             _write_image(self.fits, data, name, keys, compress="RICE_1")
         else:
             _write_image(self.fits, data, name, keys)
@@ -243,7 +254,7 @@ def _write_cell(
     for plane in _cell_planes(cell.n_noise):
         name = extname(cell.index, plane)
         plane_keys: list[dict[str, Any]] = [*keys, {"name": "PLANE", "value": plane}]
-        if plane == "inputs":
+        if plane == cell_planes.INPUTS:
             hdus.table(inputs_to_array(cell.inputs, ascii_only=True), name, plane_keys)
             continue
         plane_keys += [
@@ -337,7 +348,7 @@ class FitsCoaddFile(CoaddFile):
         with reading_errors(path, "reading the metadata"):
             dims = hdu.get_dims()
             if len(dims) != 1 or not 0 < dims[0] <= MAX_METADATA_BYTES:
-                raise ValueError(f"METADATA has dimensions {dims}")
+                raise DamagedDataError(f"METADATA has dimensions {dims}", hdu="METADATA")
             payload = hdu.read().astype(np.uint8, copy=False).tobytes()
             digest = hdu.read_header().get("METASHA")
             if digest != sha256_hex(payload):
@@ -348,7 +359,7 @@ class FitsCoaddFile(CoaddFile):
             table = hdu.read()
             rows = {(int(r["CELL_X"]), int(r["CELL_Y"])): r for r in table}
             if len(rows) != len(table):
-                raise ValueError("the cell index lists a cell twice")
+                raise DamagedDataError("the cell index lists a cell twice")
         return metadata, rows
 
     def _check_last_hdu(self, n_hdu: int, size: int) -> None:
@@ -428,13 +439,13 @@ class FitsCoaddFile(CoaddFile):
             )
         shapes = expected_shapes(self.metadata, identity["outer_bbox"])
         planes: dict[str, Any] = {}  # arrays, by CellCoadd field name
-        for plane in PLANES:
-            number = int(row[_HDU_COLUMNS[plane]])
-            if plane == "noise" and self.metadata.n_noise == 0 and number == -1:
-                planes[plane] = np.zeros(shapes["noise"], dtype=np.float32)
+        for spec in cell_planes.PLANES:
+            number = int(row[hdu_column(spec.name)])
+            if spec.per_realization and self.metadata.n_noise == 0 and number == -1:
+                planes[spec.name] = np.zeros(shapes[spec.name], dtype=spec.dtype)
                 continue
-            planes[plane] = self._read_plane(key, plane, number, shapes[plane])
-        inputs = self._read_inputs_hdu(key, int(row[_HDU_COLUMNS["inputs"]]))
+            planes[spec.name] = self._read_plane(key, spec.name, number, shapes[spec.name])
+        inputs = self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))
         with reading_errors(self.path, f"cell {key} contents"):
             return CellCoadd(**planes, inputs=inputs, **identity)
 
@@ -445,27 +456,28 @@ class FitsCoaddFile(CoaddFile):
         with reading_errors(self.path, f"cell {key} plane {plane}"):
             dims = tuple(hdu.get_dims())
             if dims != shape:
-                raise ValueError(f"dimensions {dims}, expected {shape}")
+                raise DamagedDataError(f"dimensions {dims}, expected {shape}", cell=key)
             as_bits = hdu.read_header().get("CCBITS") == "FLOAT32"
             data = hdu.read()
-            expected = np.dtype({"mask": np.int32, "psf": np.float64}.get(plane, np.float32))
+            spec = cell_planes.plane(plane)
+            expected = spec.dtype
             if as_bits:
-                if data.dtype.kind != "i" or data.itemsize != 4 or plane not in _FLOAT_PLANES:
-                    raise ValueError(f"CCBITS on a {data.dtype} {plane} plane")
+                if data.dtype.kind != "i" or data.itemsize != 4 or spec.compression != "float_bits":
+                    raise DamagedDataError(f"CCBITS on a {data.dtype} {plane} plane", cell=key)
                 # Native byte order first, then reinterpret the bits.
                 data = data.astype(np.int32, copy=False).view(np.float32)
             if (data.dtype.kind, data.itemsize) != (expected.kind, expected.itemsize):
-                raise ValueError(f"dtype {data.dtype}, expected {expected}")
+                raise DamagedDataError(f"dtype {data.dtype}, expected {expected}", cell=key)
             return data
 
     def _read_inputs_hdu(self, key: tuple[int, int], number: int) -> list[InputRecord]:
-        hdu = self._hdu(number, extname(key, "inputs"))
+        hdu = self._hdu(number, extname(key, cell_planes.INPUTS))
         with reading_errors(self.path, f"cell {key} inputs"):
             return inputs_from_array(hdu.read(), ascii_only=True)
 
     def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:
         key, row = self._row(index)
-        return self._read_inputs_hdu(key, int(row[_HDU_COLUMNS["inputs"]]))
+        return self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))
 
     def close(self) -> None:
         fits = getattr(self, "_fits", None)

@@ -9,7 +9,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddValueError
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchMetadata, parse_format_version
 
 #: Marker identifying a cellcoadd patch file (FITS keyword CCFORMAT, HDF5 attribute).
@@ -40,7 +40,7 @@ def check_format_version(path: str, version: Any) -> tuple[int, int]:
         version = version.decode("ascii", errors="replace")
     try:
         major, minor = parse_format_version(str(version))
-    except ValueError as err:
+    except CellCoaddValueError as err:
         raise CellCoaddFormatError(path, str(err)) from None
     ours = parse_format_version(FORMAT_VERSION)[0]
     if major != ours:
@@ -61,7 +61,7 @@ def decode_metadata(path: str, payload: bytes, version: str) -> PatchMetadata:
     _, minor = check_format_version(path, version)
     data = json.loads(payload.decode("utf-8"))
     if not isinstance(data, dict):
-        raise ValueError("metadata JSON is not an object")
+        raise CellCoaddFormatError(path, "metadata JSON is not an object")
     if minor > parse_format_version(FORMAT_VERSION)[1]:
         data = _drop_unknown_fields(PatchMetadata, data)
     metadata = PatchMetadata.model_validate(data)

@@ -36,6 +36,8 @@ import h5py
 import numpy as np
 from h5py import h5a, h5d, h5g, h5o, h5p, h5s, h5t
 
+from cellcoadd.errors import CellCoaddValueError
+
 #: Modulus of the Fletcher-32 sums.
 _MOD = 65535
 #: Longest block row, in 16-bit words (row sums fit in uint32), and the shortest preferred.
@@ -81,7 +83,7 @@ def fletcher32_rows(data: np.ndarray) -> np.ndarray:
         uint32 checksums, one per row.
     """
     if data.ndim != 2 or data.dtype != np.uint8 or data.strides[1] != 1:
-        raise ValueError("expected a 2-D uint8 array with contiguous rows")
+        raise CellCoaddValueError("expected a 2-D uint8 array with contiguous rows")
     if data.shape[1] % 2 or data.strides[0] % 2:
         return np.array([fletcher32(np.ascontiguousarray(row)) for row in data], np.uint32)
     words = data.view("<u2")
@@ -154,7 +156,7 @@ class ChunkScratch:
         """
         size = arrays[0].nbytes if arrays else 0
         if any(array.nbytes != size for array in arrays):
-            raise ValueError("arrays of different sizes")
+            raise CellCoaddValueError("arrays of different sizes")
         width = size + _CHECKSUM_BYTES
         if self._buffer.size < width * len(arrays):
             self._buffer = np.empty(max(width * len(arrays), 2 * self._buffer.size), np.uint8)

@@ -2,8 +2,9 @@
 
 Root attributes identify the file (``cellcoadd_format``), its ``format_version`` and the
 SHA-256 of the metadata JSON stored in the ``/metadata`` uint8 dataset. Each cell is a
-group ``/cells/<cx>_<cy>`` with datasets ``image``, ``mask``, ``variance``, ``mfrac``,
-``noise`` (K, ny, nx), ``psf`` and ``inputs`` (compound), and attributes ``cell`` (identity
+group ``/cells/<cx>_<cy>`` with one dataset per plane of
+:data:`~cellcoadd.model.planes.PLANES` (``image``, ``mask``, ``variance``, ``mfrac``,
+``noise`` (K, ny, nx), ``psf``), ``inputs`` (compound), and attributes ``cell`` (identity
 JSON: tract, index, boxes, exact WCS) and ``cell_sha256``.
 
 Every non-empty dataset is chunked as a single chunk (one cell's plane) with a Fletcher-32
@@ -23,7 +24,7 @@ from typing import Any, NamedTuple
 import h5py
 import numpy as np
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, DamagedDataError
 from cellcoadd.io._files import parallel
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io.coadd import format_version
@@ -44,22 +45,13 @@ from cellcoadd.io.coadd.format_version import (
 )
 from cellcoadd.io.coadd.hdf5_chunks import Attribute, ChunkScratch, Member, ObjectMaker
 from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd
 
 _LIBVER = ("v110", "v110")
 _GROUP_NAME = re.compile(r"^(-?\d+)_(-?\d+)$")
-_DTYPES: dict[str, np.dtype] = {
-    "image": np.dtype("<f4"),
-    "mask": np.dtype("<i4"),
-    "variance": np.dtype("<f4"),
-    "mfrac": np.dtype("<f4"),
-    "noise": np.dtype("<f4"),
-    "psf": np.dtype("<f8"),
-}
-#: Objects every cell group holds, nothing else.
-_CELL_OBJECTS = frozenset((*_DTYPES, "inputs"))
 #: Objects of the root group.
 _ROOT_OBJECTS = frozenset(("metadata", "cells"))
 #: Version from which the root attribute ``contents`` lists the cells and planes.
@@ -181,8 +173,12 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
     inputs = [inputs_to_array(cell.inputs, ascii_only=False) for cell in batch]
     records = [cell_record_json(cell, cells.records).encode("ascii") for cell in batch]
     chunks: list[dict[str, memoryview]] = [{} for _ in batch]
-    for name in () if cells.compress else (*_DTYPES, "inputs"):
-        arrays = inputs if name == "inputs" else [_stored_plane(cell, name) for cell in batch]
+    for name in () if cells.compress else cell_planes.cell_objects():
+        arrays = (
+            inputs
+            if name == cell_planes.INPUTS
+            else [_stored_plane(cell, cell_planes.plane(name)) for cell in batch]
+        )
         sizes = {array.nbytes for array in arrays}
         if sizes == {0}:
             continue
@@ -202,14 +198,17 @@ def contents_json(indices: list[tuple[int, int]]) -> str:
     """ASCII JSON of the root attribute ``contents``: the cells' group names (sorted) and
     the objects of each cell group."""
     return json.dumps(
-        {"cells": sorted(group_name(index) for index in indices), "planes": sorted(_CELL_OBJECTS)},
+        {
+            "cells": sorted(group_name(index) for index in indices),
+            "planes": sorted(cell_planes.cell_objects()),
+        },
         separators=(",", ":"),
     )
 
 
-def _stored_plane(cell: CellCoadd, plane: str) -> np.ndarray:
+def _stored_plane(cell: CellCoadd, spec: cell_planes.PlaneSpec) -> np.ndarray:
     """A plane of ``cell`` as stored: C-contiguous, little-endian, the plane's dtype."""
-    return np.ascontiguousarray(getattr(cell, plane), dtype=_DTYPES[plane])
+    return np.ascontiguousarray(getattr(cell, spec.name), dtype=spec.stored_dtype)
 
 
 class _CellWriter:
@@ -232,21 +231,22 @@ def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> No
     identity attributes (chunks, inputs table and record as ``prepared``)."""
     maker = writer.maker
     members: list[Member] = []
-    for plane in _DTYPES:
+    for spec in cell_planes.PLANES:
+        plane = spec.name
         # planes share shape and dtype: the name travels with the data so that a moved or
         # swapped dataset is refused rather than read as another plane
         attributes: list[Attribute] = [("plane", plane)]
         attributes += [(key, value) for key, value, _ in writer.plane_attrs.get(plane, [])]
-        members.append((plane, _stored_plane(cell, plane), attributes, prepared.chunks.get(plane)))
+        members.append((plane, _stored_plane(cell, spec), attributes, prepared.chunks.get(plane)))
     # one copy of a template group (its datasets and their attributes), then the chunks
     group = maker.group_of(writer.cells, group_name(cell.index), members)
     maker.dataset(
         group,
-        "inputs",
+        cell_planes.INPUTS,
         prepared.inputs,
-        [("plane", "inputs")],
+        [("plane", cell_planes.INPUTS)],
         repeated=True,
-        chunk=prepared.chunks.get("inputs"),
+        chunk=prepared.chunks.get(cell_planes.INPUTS),
     )
     record = prepared.record
     maker.attributes(group, [("cell", record.decode("ascii")), ("cell_sha256", sha256_hex(record))])
@@ -289,12 +289,14 @@ class Hdf5CoaddFile(CoaddFile):
                 _plain_link(self._h5, name)  # newer minors may add objects: none is a link
             cells_group = _plain_link(self._h5, "cells")
             if not isinstance(cells_group, h5py.Group):
-                raise ValueError("/cells is not a group")
+                raise DamagedDataError("/cells is not a group", hdu="/cells")
             _single_name(cells_group)
         with reading_errors(self.path, "reading the metadata"):
             dataset = _plain_dataset(self._h5, "metadata", self._size)
             if dataset.ndim != 1 or not 0 < dataset.shape[0] <= MAX_METADATA_BYTES:
-                raise ValueError(f"metadata dataset has shape {dataset.shape}")
+                raise DamagedDataError(
+                    f"metadata dataset has shape {dataset.shape}", hdu=dataset.name
+                )
             self._check_checksummed(dataset)
             payload = dataset[()].astype(np.uint8, copy=False).tobytes()
             if self.verify and digest != sha256_hex(payload):
@@ -305,7 +307,7 @@ class Hdf5CoaddFile(CoaddFile):
             for name in cells_group:
                 match = _GROUP_NAME.match(name)
                 if match is None:
-                    raise ValueError(f"unexpected group /cells/{name}")
+                    raise DamagedDataError(f"unexpected group /cells/{name}", hdu=f"/cells/{name}")
                 _plain_link(cells_group, name)
                 groups[(int(match.group(1)), int(match.group(2)))] = name
         if file_version >= _CONTENTS_SINCE:
@@ -317,14 +319,14 @@ class Hdf5CoaddFile(CoaddFile):
         digest binds it to the metadata (a deleted or added cell group is refused)."""
         with reading_errors(self.path, "reading the list of cells"):
             if "contents" not in self._h5.attrs:
-                raise ValueError("the root attribute 'contents' is missing")
+                raise DamagedDataError("the root attribute 'contents' is missing")
             contents = bytes(self._h5.attrs["contents"])
             digest = _attr_text(self._h5.attrs["contents_sha256"])
             listed = json.loads(contents)
             cells, planes = listed["cells"], listed["planes"]
         if self.verify and digest != sha256_hex(payload + contents):
             raise CellCoaddFormatError(self.path, "SHA-256 of the list of cells mismatch")
-        if sorted(planes) != sorted(_CELL_OBJECTS):
+        if sorted(planes) != sorted(cell_planes.cell_objects()):
             raise CellCoaddFormatError(self.path, f"unexpected cell planes {planes}")
         found = set(groups.values())
         missing, extra = sorted(set(cells) - found), sorted(found - set(cells))
@@ -337,16 +339,18 @@ class Hdf5CoaddFile(CoaddFile):
 
     def _check_checksummed(self, dataset: h5py.Dataset) -> None:
         if self.verify and dataset.size > 0 and not dataset.fletcher32:
-            raise ValueError(f"dataset {dataset.name} has no Fletcher-32 checksum")
+            raise DamagedDataError(
+                f"dataset {dataset.name} has no Fletcher-32 checksum", hdu=dataset.name
+            )
 
     def _group(self, index: tuple[int, int]) -> tuple[tuple[int, int], h5py.Group]:
         key = self._check_index(index)
         with reading_errors(self.path, f"cell {key} group"):
             group = _plain_link(self._h5["cells"], self._groups[key])
             if not isinstance(group, h5py.Group):
-                raise ValueError(f"{group.name} is not a group")
+                raise DamagedDataError(f"{group.name} is not a group", hdu=group.name)
             _single_name(group)
-            _check_members(group, _CELL_OBJECTS, exact=True)
+            _check_members(group, frozenset(cell_planes.cell_objects()), exact=True)
             return key, group
 
     def read_cell(self, index: tuple[int, int]) -> CellCoadd:
@@ -366,16 +370,27 @@ class Hdf5CoaddFile(CoaddFile):
             check_cell_geometry(self.metadata, identity)
         shapes = expected_shapes(self.metadata, identity["outer_bbox"])
         planes = {}
-        for plane, dtype in _DTYPES.items():
+        for spec in cell_planes.PLANES:
+            plane, dtype = spec.name, spec.stored_dtype
             with reading_errors(self.path, f"cell {key} plane {plane}"):
                 dataset = _plain_dataset(group, plane, self._size)
                 if dataset.shape != shapes[plane]:
-                    raise ValueError(f"shape {dataset.shape}, expected {shapes[plane]}")
+                    raise DamagedDataError(
+                        f"shape {dataset.shape}, expected {shapes[plane]}",
+                        hdu=dataset.name,
+                        cell=key,
+                    )
                 if (dataset.dtype.kind, dataset.dtype.itemsize) != (dtype.kind, dtype.itemsize):
-                    raise ValueError(f"dtype {dataset.dtype}, expected {dtype}")
+                    raise DamagedDataError(
+                        f"dtype {dataset.dtype}, expected {dtype}", hdu=dataset.name, cell=key
+                    )
                 self._check_checksummed(dataset)
                 if _attr_text(dataset.attrs.get("plane", b"")) != plane:
-                    raise ValueError(f"dataset {dataset.name} does not hold plane {plane!r}")
+                    raise DamagedDataError(
+                        f"dataset {dataset.name} does not hold plane {plane!r}",
+                        hdu=dataset.name,
+                        cell=key,
+                    )
                 planes[plane] = dataset[()]
         inputs = self._read_inputs(key, group)
         with reading_errors(self.path, f"cell {key} contents"):
@@ -383,9 +398,13 @@ class Hdf5CoaddFile(CoaddFile):
 
     def _read_inputs(self, key: tuple[int, int], group: h5py.Group) -> list[InputRecord]:
         with reading_errors(self.path, f"cell {key} inputs"):
-            dataset = _plain_dataset(group, "inputs", self._size)
+            dataset = _plain_dataset(group, cell_planes.INPUTS, self._size)
             if dataset.ndim != 1 or dataset.dtype.names is None:
-                raise ValueError(f"inputs dataset has shape {dataset.shape}, dtype {dataset.dtype}")
+                raise DamagedDataError(
+                    f"inputs dataset has shape {dataset.shape}, dtype {dataset.dtype}",
+                    hdu=dataset.name,
+                    cell=key,
+                )
             self._check_checksummed(dataset)
             return inputs_from_array(dataset[()], ascii_only=False)
 
@@ -405,9 +424,12 @@ def _plain_link(group: h5py.Group, name: str) -> Any:
     and external links could make a cell or plane come from elsewhere)."""
     link = group.get(name, getlink=True)
     if link is None:
-        raise KeyError(f"{group.name}/{name} is missing")
+        raise DamagedDataError(f"{group.name}/{name} is missing", hdu=f"{group.name}/{name}")
     if not isinstance(link, h5py.HardLink):
-        raise ValueError(f"{group.name}/{name} is a {type(link).__name__}, not an object here")
+        raise DamagedDataError(
+            f"{group.name}/{name} is a {type(link).__name__}, not an object here",
+            hdu=f"{group.name}/{name}",
+        )
     return group[name]
 
 
@@ -416,16 +438,18 @@ def _single_name(obj: h5py.HLObject) -> None:
     or plane would silently read the same bytes."""
     count = h5py.h5o.get_info(obj.id).rc
     if count != 1:
-        raise ValueError(f"{obj.name} is linked from {count} places")
+        raise DamagedDataError(f"{obj.name} is linked from {count} places", hdu=obj.name)
 
 
 def _check_members(group: h5py.Group, expected: frozenset[str], *, exact: bool) -> None:
     names = set(group)
     missing = sorted(expected - names)
     if missing:
-        raise KeyError(f"{group.name} lacks {missing}")
+        raise DamagedDataError(f"{group.name} lacks {missing}", hdu=group.name)
     if exact and names != expected:
-        raise ValueError(f"{group.name} holds unexpected objects {sorted(names - expected)}")
+        raise DamagedDataError(
+            f"{group.name} holds unexpected objects {sorted(names - expected)}", hdu=group.name
+        )
 
 
 def _plain_dataset(group: h5py.Group, name: str, file_size: int) -> h5py.Dataset:
@@ -433,29 +457,33 @@ def _plain_dataset(group: h5py.Group, name: str, file_size: int) -> h5py.Dataset
     name, that really stores the bytes its shape declares (checked before reading it)."""
     dataset = _plain_link(group, name)
     if not isinstance(dataset, h5py.Dataset):
-        raise ValueError(f"{dataset.name} is not a dataset")
+        raise DamagedDataError(f"{dataset.name} is not a dataset", hdu=dataset.name)
     _single_name(dataset)
     plist = dataset.id.get_create_plist()
     layout = plist.get_layout()
     if layout not in (h5py.h5d.CONTIGUOUS, h5py.h5d.CHUNKED):
         kind = {h5py.h5d.VIRTUAL: "virtual", h5py.h5d.COMPACT: "compact"}.get(layout, layout)
-        raise ValueError(f"{dataset.name} is a {kind} dataset")
+        raise DamagedDataError(f"{dataset.name} is a {kind} dataset", hdu=dataset.name)
     if plist.get_external_count() > 0:
-        raise ValueError(f"{dataset.name} keeps its data in external files")
+        raise DamagedDataError(f"{dataset.name} keeps its data in external files", hdu=dataset.name)
     declared = dataset.size * dataset.dtype.itemsize
     if declared == 0:
         return dataset
     stored = dataset.id.get_storage_size()
     if stored > file_size:
-        raise ValueError(f"{dataset.name} stores {stored} bytes, more than the file's {file_size}")
+        raise DamagedDataError(
+            f"{dataset.name} stores {stored} bytes, more than the file's {file_size}",
+            hdu=dataset.name,
+        )
     checks_only = (h5py.h5z.FILTER_FLETCHER32, h5py.h5z.FILTER_SHUFFLE)
     filtered = layout == h5py.h5d.CHUNKED and any(
         plist.get_filter(i)[0] not in checks_only for i in range(plist.get_nfilters())
     )
     limit = _MAX_COMPRESSION * stored if filtered else stored
     if stored == 0 or declared > limit:
-        raise ValueError(
-            f"{dataset.name} declares {dataset.shape} ({declared} bytes) but stores {stored}"
+        raise DamagedDataError(
+            f"{dataset.name} declares {dataset.shape} ({declared} bytes) but stores {stored}",
+            hdu=dataset.name,
         )
     return dataset
 

@@ -46,11 +46,12 @@ import fitsio
 import numpy as np
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, DamagedDataError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._files.read_checks import is_file_failure
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import (
     DATACRC_PLACEHOLDER,
@@ -229,7 +230,9 @@ def _with_file(path: str | os.PathLike[str], read: Callable[[fitsio.FITS, Binary
             return read(fits_file, raw)
     except CellCoaddFormatError as err:
         raise CellCoaddFormatError(path, err.problem) from None
-    except Exception as err:  # any library error on a malformed file becomes a format error
+    except Exception as err:  # a library's error on a malformed file is a format error
+        if not is_file_failure(err):  # a programming error is not the file's fault
+            raise
         raise CellCoaddFormatError(path, f"unreadable exposure file ({err})") from err
     finally:
         clear_cfitsio_messages()
@@ -261,7 +264,7 @@ def _open_parts(
         if verify_all or hdu.get_extname() in ("META", "PSF"):
             try:
                 verify_hdu(raw, hdu.get_offsets())
-            except ValueError as err:
+            except DamagedDataError as err:
                 raise _fail(f"HDU {hdu.get_extname() or hdu.get_extnum()}: {err}") from None
     meta = _read_meta(fits_file["META"].read())
     image_header = fits_file["IMAGE"].read_header()

@@ -44,7 +44,7 @@ from typing import Any
 import galsim
 import numpy as np
 
-from cellcoadd.errors import CellCoaddFormatError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, PsfError
 from cellcoadd.io._fits.wcs_header import as_float
 from cellcoadd.io.exposures.psf_codec import can_encode, decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
@@ -86,7 +86,7 @@ def psf_payload(exposure: Exposure) -> Payload:
             return _pre_pixel_payload(exposure, model.func)
         grid = model.func if isinstance(model.func, GridPsf) else _sample(exposure, model.func)
         return "PIXGRID", _grid_meta("pixel_grid", grid, includes_pixel=True), _cube(grid)
-    raise TypeError(f"a PSF model of type {type(model).__name__} cannot be stored")
+    raise CellCoaddTypeError(f"a PSF model of type {type(model).__name__} cannot be stored")
 
 
 def _pre_pixel_payload(

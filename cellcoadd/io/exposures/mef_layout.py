@@ -32,6 +32,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
+from cellcoadd.errors import (
+    CellCoaddIncompatibleValuesError,
+    CellCoaddRangeError,
+    CellCoaddValueError,
+)
 from cellcoadd.model.units import NJY_ZERO_POINT  # AB magnitude of 1 nJy (31.4)
 
 #: HDU given by EXTNAME (or EXTTYPE; case-insensitive) or by number (0 = primary).
@@ -125,16 +130,24 @@ class MefLayout(BaseModel):
         if bits is not None:
             for name, bit in bits.items():
                 if not 0 <= bit <= 30:
-                    raise ValueError(f"mask bit {name!r} = {bit} is outside 0..30")
+                    raise CellCoaddRangeError(
+                        f"mask bit {name!r} = {bit} is outside 0..30", value=bit, low=0, high=30
+                    )
         return bits
 
     @model_validator(mode="after")
     def _check_planes(self) -> MefLayout:
         if (self.variance_hdu is None) == (self.weight_hdu is None):
-            raise ValueError("give exactly one of variance_hdu and weight_hdu")
+            raise CellCoaddIncompatibleValuesError(
+                "give exactly one of variance_hdu and weight_hdu",
+                values={"variance_hdu": self.variance_hdu, "weight_hdu": self.weight_hdu},
+            )
         if self.weight_hdu is not None and self.mask_bits is not None:
             if self.zero_weight_bit in self.mask_bits:
-                raise ValueError(f"zero_weight_bit {self.zero_weight_bit!r} is a file bit")
+                raise CellCoaddValueError(
+                    f"zero_weight_bit {self.zero_weight_bit!r} is a file bit",
+                    value=self.zero_weight_bit,
+                )
         return self
 
 
@@ -143,7 +156,9 @@ def bits_from_values(values: dict[str, int]) -> dict[str, int]:
     out = {}
     for name, value in values.items():
         if value <= 0 or value & (value - 1):
-            raise ValueError(f"mask value {name} = {value} is not a power of two")
+            raise CellCoaddValueError(
+                f"mask value {name} = {value} is not a power of two", value=value
+            )
         out[name] = value.bit_length() - 1
     return out
 

@@ -20,7 +20,7 @@ from typing import Any
 import galsim
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError
+from cellcoadd.errors import PsfCodecError
 from cellcoadd.model.psf_profiles import Poly, VaryingPsf
 
 #: Profiles stored exactly: GalSim class -> constructor arguments (read from attributes
@@ -42,10 +42,6 @@ _GSPARAMS_NAMES = tuple(
     if f"_{name}" in vars(galsim.GSParams())
 )
 _MAX_DEPTH = 32
-
-
-class PsfCodecError(CellCoaddError, ValueError):
-    """A PSF description cannot be encoded or is not a valid description."""
 
 
 # -- constant profiles ---------------------------------------------------------------

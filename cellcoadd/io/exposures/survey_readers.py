@@ -27,9 +27,10 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
+from cellcoadd.io._files.read_checks import is_file_failure
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
 from cellcoadd.io.exposures.mef_file import MefFile, open_mef
 from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
@@ -74,7 +75,9 @@ def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Head
             continue
         try:
             cards.append(fits.Card.fromstring(record["card_string"]))
-        except Exception:  # a card astropy cannot parse is not a WCS card: left out
+        except Exception as err:  # a card astropy cannot parse is not a WCS card: left out
+            if not is_file_failure(err):
+                raise
             continue
     out = fits.Header(cards)
     out["NAXIS"] = 2
@@ -89,6 +92,8 @@ def _wcs(path: str, header: fits.Header, what: str) -> WCS:
             warnings.simplefilter("ignore")
             wcs = WCS(header)
     except Exception as err:  # astropy raises several types for broken WCSs
+        if not is_file_failure(err):
+            raise
         raise CellCoaddFormatError(path, f"{what}: cannot parse the WCS ({err})") from None
     if not wcs.has_celestial or wcs.pixel_n_dim != 2:
         raise CellCoaddFormatError(path, f"{what}: no celestial 2-D WCS in the header")
@@ -132,7 +137,9 @@ class MefExposureFile(ExposureSource):
         band: str | None = None,
     ):
         if not isinstance(layout, MefLayout):
-            raise TypeError(f"layout must be a MefLayout, got {layout!r}")
+            raise CellCoaddTypeError(
+                f"layout must be a MefLayout, got {layout!r}", allowed=MefLayout
+            )
         self.path = os.fspath(path)
         self.layout = layout
         self.psf = psf_from(psf)

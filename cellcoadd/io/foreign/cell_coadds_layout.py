@@ -29,6 +29,7 @@ import fitsio
 import numpy as np
 from astropy.wcs import WCS
 
+from cellcoadd.errors import CellCoaddIncompatibleValuesError, CellCoaddRangeError
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._fits.checksums import DATACRC_PLACEHOLDER
 from cellcoadd.io._fits.wcs_header import wcs_cards
@@ -340,7 +341,13 @@ def _visit_tables(
     )
     for row, ((visit, detector), (x0, y0, x1, y1)) in enumerate(sorted(boxes.items())):
         if not -(2**15) <= detector < 2**15:
-            raise ValueError(f"detector {detector} does not fit VISIT_SUMMARY's int16 column")
+            raise CellCoaddRangeError(
+                f"detector {detector} does not fit VISIT_SUMMARY's int16 column",
+                value=detector,
+                low=-(2**15),
+                high=2**15 - 1,
+                detector=detector,
+            )
         ring = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]  # closed, as afw lists it
         vertices = (ring + ring)[:POLYGON_VERTICES]
         summary[row] = (visit, detector, filters[visit].encode()[:32], day_obs, 5, vertices)
@@ -400,7 +407,10 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
     number of cells. :func:`cellcoadd.io.api.write` wraps this (atomic, checksums).
     """
     if compress:
-        raise ValueError("the cell_coadds layout has no compression; use compression='none'")
+        raise CellCoaddIncompatibleValuesError(
+            "the cell_coadds layout has no compression; use compression='none'",
+            values={"compress": compress},
+        )
     meta = patch.metadata
     grid = grid_of(meta)
     stored = _stored_cells(patch)

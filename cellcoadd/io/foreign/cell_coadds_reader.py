@@ -18,7 +18,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, DamagedDataError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
@@ -123,7 +123,7 @@ class CellCoaddsFile(CoaddFile):
         if number == 1:  # the cell table: the checksum pass waits for the first cell read
             with reading_errors(self.path, self._name(1)):
                 if len(self._fits) < 2 or self._fits[1].get_exttype() != "BINARY_TBL":
-                    raise ValueError("not a binary table")
+                    raise DamagedDataError("not a binary table", hdu=1)
                 return self._fits[1].read_header()
         with reading_errors(self.path, self._name(number)):
             return self._hdu(number).read_header()
@@ -181,7 +181,7 @@ class CellCoaddsFile(CoaddFile):
             dtype = hdu.get_rec_dtype()[0]
             columns = {name: dtype[name] for name in dtype.names}
             if "cell_id" not in columns:
-                raise ValueError("column 'cell_id' is missing")
+                raise DamagedDataError("column 'cell_id' is missing", hdu=1)
             ids: Any = np.zeros((0, 2), dtype=int)
             if hdu.get_nrows():
                 ids = hdu.read_column("cell_id")
@@ -222,11 +222,11 @@ class CellCoaddsFile(CoaddFile):
         with reading_errors(self.path, self._name(number)):
             dims = hdu.get_dims()
             if len(dims) != 1 or not 0 < dims[0] <= MAX_METADATA_BYTES:
-                raise ValueError(f"dimensions {dims}")
+                raise DamagedDataError(f"dimensions {dims}", hdu=number)
             payload = hdu.read().astype(np.uint8, copy=False).tobytes()
             keys = hdu.read_header()
             if keys.get("METASHA") != sha256_hex(payload):
-                raise ValueError("metadata SHA-256 mismatch: corrupted metadata")
+                raise DamagedDataError("metadata SHA-256 mismatch: corrupted metadata", hdu=number)
             metadata = decode_metadata(self.path, payload, str(keys.get("CCVERS")))
         if grid_of(metadata) != self._grid_header or (
             self._int(header, "TRACT"),
@@ -244,10 +244,12 @@ class CellCoaddsFile(CoaddFile):
                 identity = parse_cell_record(entry["CELL"])
                 row = int(entry["ROW"])
                 if identity["index"] != key or stored.get(row, key if row < 0 else None) != key:
-                    raise ValueError(f"cell {key} (row {row}) does not match the cell table")
+                    raise DamagedDataError(
+                        f"cell {key} (row {row}) does not match the cell table", cell=key
+                    )
                 identities[key] = identity
             if not set(self._rows) <= set(identities):
-                raise ValueError("the cell table has cells this table does not list")
+                raise DamagedDataError("the cell table has cells this table does not list")
         number = self._named(EXT_INPUTS)
         inputs: dict[Any, list[InputRecord]] = {}
         table = self._table(number)
@@ -375,7 +377,7 @@ class CellCoaddsFile(CoaddFile):
                     **shape,
                 )
                 if key not in self._rows:
-                    raise ValueError(f"cell {key} has no row in the cell table")
+                    raise DamagedDataError(f"cell {key} has no row in the cell table", cell=key)
                 inputs.setdefault(key, []).append(record)
         return inputs
 
@@ -416,7 +418,7 @@ class CellCoaddsFile(CoaddFile):
             data = hdu.read(rows=[row])[0]
             shapes = expected_shapes(meta, identity["outer_bbox"])
             if shapes["image"] != (meta.cell_outer, meta.cell_outer):
-                raise ValueError(f"the cell's outer box is {shapes['image']}")
+                raise DamagedDataError(f"the cell's outer box is {shapes['image']}", cell=key)
             mfrac = (
                 _native(data["maskfrac"])
                 if "maskfrac" in self._columns
@@ -426,7 +428,9 @@ class CellCoaddsFile(CoaddFile):
             mask = _native(data["mask"])
             unknown = meta.mask_bits.unknown_bits(mask)
             if unknown:
-                raise ValueError(f"mask has bits {unknown:#x} that MASKDEF does not name")
+                raise DamagedDataError(
+                    f"mask has bits {unknown:#x} that MASKDEF does not name", cell=key
+                )
             return CellCoadd(
                 image=_native(data["image"]),
                 mask=mask,

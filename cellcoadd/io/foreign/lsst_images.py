@@ -37,7 +37,12 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.errors import CellCoaddFormatError, InvalidCoaddError
+from cellcoadd.errors import (
+    CellCoaddFormatError,
+    CellCoaddTypeError,
+    CellCoaddValueError,
+    InvalidCoaddError,
+)
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io.foreign.lsst_images_parts import (
@@ -106,9 +111,15 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
     >>> coadd.write("patch.fits")                  # doctest: +SKIP  (never a .h5 name)
     """
     if not isinstance(patch, PatchCoadd):
-        raise TypeError(f"patch must be a PatchCoadd, got {type(patch).__name__}")
+        raise CellCoaddTypeError(
+            f"patch must be a PatchCoadd, got {type(patch).__name__}", allowed=PatchCoadd
+        )
     if mode not in ("stitched", "per_cell"):
-        raise ValueError(f"mode must be 'stitched' or 'per_cell', got {mode!r}")
+        raise CellCoaddValueError(
+            f"mode must be 'stitched' or 'per_cell', got {mode!r}",
+            value=mode,
+            allowed=("stitched", "per_cell"),
+        )
     images = lsst_images_module()
     if mode == "stitched":
         return _to_stitched(images, patch)
@@ -252,7 +263,7 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
             raise InvalidCoaddError("no lsst-images coadd to convert")
         return _from_per_cell(coadds)
     if not isinstance(obj, images.cells.CellCoadd):
-        raise TypeError(
+        raise CellCoaddTypeError(
             f"expected an lsst.images.cells.CellCoadd, a mapping of them or a path, "
             f"got {type(obj).__name__}"
         )

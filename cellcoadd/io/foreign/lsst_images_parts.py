@@ -12,7 +12,7 @@ import numpy as np
 from astropy import units as u
 from astropy.wcs import WCS
 
-from cellcoadd.errors import InvalidCoaddError
+from cellcoadd.errors import CellCoaddValueError, InvalidCoaddError, MissingDependencyError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
@@ -78,9 +78,10 @@ def lsst_images_module() -> Any:
         import lsst.images as images
         import lsst.images.cells  # noqa: F401  (attribute of ``images`` from here on)
     except ImportError as err:
-        raise ImportError(
+        raise MissingDependencyError(
             f"converting to or from lsst-images needs the 'lsst-images' package: {EXTRA_HINT}"
-            f" ({err})"
+            f" ({err})",
+            package="lsst.images",
         ) from err
     return images
 
@@ -104,7 +105,9 @@ def export_unit(meta: PatchMetadata) -> tuple[u.UnitBase, float | None]:
     try:
         unit = u.Unit(text, parse_strict="raise")
     except ValueError as err:
-        raise ValueError(f"patch units {text!r} are not an astropy unit: {err}") from None
+        raise CellCoaddValueError(
+            f"patch units {text!r} are not an astropy unit: {err}", value=text
+        ) from None
     if unit == u.ct:
         zero_point = getattr(meta, "zero_point", None)
         if zero_point is None:
@@ -112,7 +115,7 @@ def export_unit(meta: PatchMetadata) -> tuple[u.UnitBase, float | None]:
         return u.ct, float(zero_point)
     if unit == u.nJy:
         return u.nJy, None
-    raise ValueError(
+    raise CellCoaddValueError(
         f"patch units {text!r}: only nJy and counts (with a zero point) are exported to lsst-images"
     )
 

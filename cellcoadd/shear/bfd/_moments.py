@@ -1,8 +1,8 @@
 """BFD moments (Bernstein & Armstrong 2014; Bernstein et al. 2016) of PSF-deconvolved images.
 
 This module turns a pixel image into *Fourier data* (:class:`KData`) and measures the BFD
-moments and their noise covariance from it; :mod:`cellcoadd.shear.bfd_prior` builds the
-template prior and the per-galaxy ``P, Q, R``. :mod:`cellcoadd.shear.bfd` re-exports both.
+moments and their noise covariance from it; ``_prior.py`` builds the template prior and
+the per-galaxy ``P, Q, R``. Public names are imported from :mod:`cellcoadd.shear.bfd`.
 
 Conventions and units
 ---------------------
@@ -39,17 +39,17 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError
+from cellcoadd.errors import BfdError
 
 __all__ = [
     "DEFAULT_OVERSAMPLE",
     "EVEN_NAMES",
     "ODD_NAMES",
-    "BfdError",
     "KData",
     "KSigmaWeight",
     "Moments",
     "bfd_moments",
+    "centroid_jacobian",
     "fourier_data",
     "measure_moments",
     "moment_coefficients",
@@ -66,10 +66,6 @@ ODD_NAMES: tuple[str, ...] = ("X", "Y")
 #: (8-fold) one, to 7e-6 in m1 against 1e-4 for 3-fold and 0.03 for none
 #: (docs/validation.md, "k sampling"); it costs ~16 times the unpadded transform.
 DEFAULT_OVERSAMPLE = 4
-
-
-class BfdError(CellCoaddError, ValueError):
-    """BFD moments or shear cannot be computed from the given inputs."""
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,179 @@
+"""The one description of a cell's planes: name, dtype, shape, compression and unit of each.
+
+Every place that handles a cell's planes plane by plane iterates :data:`PLANES` (the FITS
+and HDF5 writers and readers, the file-size estimate, stitching, cell comparison, the
+``info`` summary), so a plane is added or changed here. Besides its planes a cell stores
+its table of inputs, :data:`INPUTS` (see :mod:`cellcoadd.model.inputs`).
+
+Conventions are those of :mod:`cellcoadd.model.cell_coadd`: a cell-grid plane covers the
+cell's outer box, ``plane[j, i]`` being tract pixel ``(x_start + i, y_start + j)``; a
+per-realization plane has a leading axis of the ``K`` noise realizations; the PSF is an
+odd square stamp centred on its central pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+#: Lossless compression that suits a plane's values. ``"float_bits"`` (float32 planes):
+#: compress the IEEE-754 bit patterns (FITS: the plane tile-compressed with GZIP_2 as int32, keyword
+#: ``CCBITS``; CFITSIO would otherwise turn every non-finite value into one NaN);
+#: ``"integer"``: integer tile compression (FITS RICE_1); ``"none"``: stored as is in FITS.
+#: HDF5 files shuffle + gzip every dataset when compressed, lossless whatever the kind.
+Compression = Literal["float_bits", "integer", "none"]
+
+#: What a plane's values are measured in. ``"flux"``: the patch's pixel unit
+#: (``PatchMetadata.units``, ``BUNIT`` and for counts ``MAGZERO``); ``"flux_squared"``: its
+#: square (``BUNIT`` of the square); ``"mask_bits"``: named bits (``MP_<NAME>`` keywords);
+#: ``"fraction"``: dimensionless in [0, 1]; ``"normalised"``: dimensionless, sums to 1.
+UnitKind = Literal["flux", "flux_squared", "mask_bits", "fraction", "normalised"]
+
+#: Name of a cell's inputs table, stored beside its planes (FITS HDU, HDF5 dataset).
+INPUTS = "inputs"
+
+
+@dataclass(frozen=True)
+class PlaneSpec:
+    """How one plane of a cell is held in memory and stored.
+
+    Attributes
+    ----------
+    name : str
+        Attribute of :class:`~cellcoadd.model.cell_coadd.CellCoadd`, FITS ``PLANE`` /
+        EXTNAME suffix (upper-cased), HDF5 dataset name.
+    dtype : numpy.dtype
+        In-memory dtype (native byte order); files store it little-endian (HDF5) or
+        big-endian (FITS).
+    per_realization : bool
+        One layer per noise realization: shape ``(K, ny, nx)``; none stored when ``K = 0``
+        in FITS (no zero-size images there).
+    stamp : bool
+        A PSF-sized square stamp ``(psf_size, psf_size)`` instead of the outer box.
+    compression : Compression
+        Lossless compression kind (see :data:`Compression`).
+    unit : UnitKind
+        Unit kind of the values (see :data:`UnitKind`).
+    doc : str
+        One line saying what the plane holds.
+    """
+
+    name: str
+    dtype: np.dtype
+    per_realization: bool
+    stamp: bool
+    compression: Compression
+    unit: UnitKind
+    doc: str
+
+    @property
+    def stored_dtype(self) -> np.dtype:
+        """:attr:`dtype` in little-endian byte order (as HDF5 files store it)."""
+        return self.dtype.newbyteorder("<")
+
+    @property
+    def on_cell_grid(self) -> bool:
+        """Whether the plane covers the cell's pixels (not a stamp): it can be cut to the
+        inner box and stitched over a patch."""
+        return not self.stamp
+
+    def shape(self, outer_shape: tuple[int, int], n_noise: int, psf_size: int) -> tuple[int, ...]:
+        """Array shape of the plane for a cell whose outer box has ``outer_shape`` (ny, nx),
+        with ``n_noise`` realizations and ``psf_size``-pixel PSF stamps."""
+        base = (psf_size, psf_size) if self.stamp else tuple(outer_shape)
+        return (n_noise, *base) if self.per_realization else base
+
+
+#: The planes of a cell, in storage order (FITS HDUs, HDF5 datasets, cell-index columns).
+PLANES: tuple[PlaneSpec, ...] = (
+    PlaneSpec(
+        "image",
+        np.dtype(np.float32),
+        per_realization=False,
+        stamp=False,
+        compression="float_bits",
+        unit="flux",
+        doc="coadded surface brightness per coadd pixel",
+    ),
+    PlaneSpec(
+        "mask",
+        np.dtype(np.int32),
+        per_realization=False,
+        stamp=False,
+        compression="integer",
+        unit="mask_bits",
+        doc="bit mask, bits named by the patch's MaskBits",
+    ),
+    PlaneSpec(
+        "variance",
+        np.dtype(np.float32),
+        per_realization=False,
+        stamp=False,
+        compression="float_bits",
+        unit="flux_squared",
+        doc="per-pixel variance of the image",
+    ),
+    PlaneSpec(
+        "mfrac",
+        np.dtype(np.float32),
+        per_realization=False,
+        stamp=False,
+        compression="float_bits",
+        unit="fraction",
+        doc="fraction of the coadd weight from masked input pixels",
+    ),
+    PlaneSpec(
+        "noise",
+        np.dtype(np.float32),
+        per_realization=True,
+        stamp=False,
+        compression="float_bits",
+        unit="flux",
+        doc="noise realizations coadded exactly like the image",
+    ),
+    PlaneSpec(
+        "psf",
+        np.dtype(np.float64),
+        per_realization=False,
+        stamp=True,
+        compression="none",
+        unit="normalised",
+        doc="coadd PSF at the cell centre, pixel response included, summing to 1",
+    ),
+)
+
+
+def plane_names() -> tuple[str, ...]:
+    """Names of :data:`PLANES`, in storage order."""
+    return tuple(spec.name for spec in PLANES)
+
+
+def grid_plane_names() -> tuple[str, ...]:
+    """Names of the planes on the cell grid (:attr:`PlaneSpec.on_cell_grid`): those cut to
+    the inner box and stitched."""
+    return tuple(spec.name for spec in PLANES if spec.on_cell_grid)
+
+
+def cell_objects() -> tuple[str, ...]:
+    """What a stored cell holds: its planes, then its inputs table."""
+    return (*plane_names(), INPUTS)
+
+
+def plane(name: str) -> PlaneSpec:
+    """The description of plane ``name`` (KeyError if there is none)."""
+    return {spec.name: spec for spec in PLANES}[name]
+
+
+__all__ = [
+    "INPUTS",
+    "PLANES",
+    "Compression",
+    "PlaneSpec",
+    "UnitKind",
+    "cell_objects",
+    "grid_plane_names",
+    "plane",
+    "plane_names",
+]
