@@ -99,6 +99,8 @@ def library(tmp_path_factory):
 def _prepare(command: str, library: Path, work: Path) -> None:
     links = {
         "build": ["sim"],
+        "index": ["sim"],
+        "run": ["sim"],
         "info": ["patch.fits"],
         "show": ["demo-output"],
         "trim": ["demo-output", "cat.fits", "patch.fits"],

@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "locate": ("geometry", "locate", "Print the tract, patch and cell holding sky positions."),
     "simulate": ("simulate", "simulate", "Simulate exposures as in the paper (section 3)."),
     "build": ("build", "build", "Coadd exposure files into the cells of one patch."),
+    "index": ("index", "index_command", "Index input files (headers, footprints) for tract runs."),
+    "run": ("run", "run_command", "Build the patches of a tract on dask (resumable)."),
     "config": ("config", "config_command", "Print the default build configuration, or check one."),
     "init": ("init", "init_command", "Write a manifest and configuration for survey files."),
     "info": ("storage", "info_command", "Summarise a stored patch coadd (no pixels read)."),
