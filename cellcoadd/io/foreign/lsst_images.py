@@ -544,7 +544,6 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
 
 
 def _read_path(images: Any, path: Path) -> Any:
-    gate_read(path, what="lsst-images file")  # a regular file, symlinks resolved
     name = path.name.lower()
     if name.endswith((".h5", ".hdf5")):
         raise CellCoaddFormatError(
@@ -555,6 +554,7 @@ def _read_path(images: Any, path: Path) -> Any:
         )
     if not name.endswith(LSST_SUFFIXES):
         raise CellCoaddFormatError(path, f"lsst-images files end in {', '.join(LSST_SUFFIXES)}")
+    gate_read(path, what="lsst-images file")  # a regular file, symlinks resolved
     if name.endswith(".fits") and _is_cellcoadd_fits(path):
         raise CellCoaddFormatError(
             path, "a cellcoadd FITS file, not an lsst-images one: read it with cellcoadd.read"
