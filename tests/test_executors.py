@@ -27,6 +27,7 @@ from cellcoadd import BuildConfig, CellBuildError, Exposure, build_patch
 from cellcoadd.cli.main import main as cli_main
 from cellcoadd.io import api
 from cellcoadd.io.exposures.exposure_io import write_exposure
+from cellcoadd.model.psf import GalSimPsf
 
 _DATE = re.compile(rb"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d")
 
@@ -44,7 +45,7 @@ def tiny():
 
 def _killer(patch) -> Exposure:
     """An exposure used by cell (0, 0) only, whose PSF kills any worker process drawing it."""
-    return cell_sized_exposure(patch.tract.cell(0, 0), 50, DyingPsf(os.getpid()))
+    return cell_sized_exposure(patch.tract.cell(0, 0), 50, GalSimPsf(DyingPsf(os.getpid())))
 
 
 def _named_cell(message: str) -> tuple[int, int]:

@@ -550,6 +550,23 @@ def test_gzip_stream_named_fz_is_refused_before_cfitsio(tmp_path, lsst_file):
     _refused(read_lsst_exposure, packed, psf, match="not a FITS file")
 
 
+def test_gzip_fits_is_read_within_its_inflation_bound(tmp_path, lsst_file, monkeypatch):
+    """A gzip-compressed exposure file is read (CFITSIO inflates it in memory), but only
+    after its stream was inflated once, bounded, and found to hold a FITS file."""
+    from cellcoadd.io.exposures import mef_file
+
+    packed = tmp_path / "visit.fits.gz"
+    packed.write_bytes(gzip.compress(lsst_file.read_bytes()))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    plain, unpacked = read_lsst_exposure(lsst_file, psf), read_lsst_exposure(packed, psf)
+    np.testing.assert_array_equal(plain.image, unpacked.image)
+    monkeypatch.setattr(mef_file, "MAX_GZIP_BYTES", lsst_file.stat().st_size // 2)
+    _refused(read_lsst_exposure, packed, psf, match="inflates beyond")
+    cut = tmp_path / "cut.fits.gz"
+    cut.write_bytes(packed.read_bytes()[: packed.stat().st_size // 2])
+    _refused(read_lsst_exposure, cut, psf, match="damaged gzip stream")
+
+
 # -- 7. strict header values --------------------------------------------------------------------
 
 

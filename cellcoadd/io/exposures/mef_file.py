@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gzip
 import os
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -14,7 +16,7 @@ from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.headers import read_header
-from cellcoadd.io._fits.paths import starts_like_fits
+from cellcoadd.io._fits.paths import FITS_MAGIC, starts_like_fits
 from cellcoadd.io.exposures.mef_layout import HduRef
 
 #: Most pixels a plane of a survey exposure file may declare (8192 x 8192; an LSST
@@ -23,6 +25,47 @@ MAX_DETECTOR_PIXELS = 8192 * 8192
 #: Most bytes a plane may declare per byte it stores (compression ratio; lossless
 #: compression of sky images stays far below it, a constant plane reaches ~1000).
 MAX_INFLATION = 1100
+#: Most bytes a gzip-compressed exposure file (``.fits.gz``) may inflate to: CFITSIO holds
+#: the whole inflated file in memory (an LSST or DECam CCD file is 0.1-0.3 GB).
+MAX_GZIP_BYTES = 2 << 30
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+def check_gzip_stream(path: str, resolved: str) -> int:
+    """The inflated size in bytes of a gzip-compressed FITS file; refuses one that is not a
+    FITS file or inflates too far.
+
+    The stream is inflated once, 1 MiB at a time (memory bounded), before CFITSIO inflates
+    it whole into memory: at most :data:`MAX_INFLATION` times the compressed size and
+    :data:`MAX_GZIP_BYTES` bytes.
+
+    Raises
+    ------
+    CellCoaddFormatError
+        Naming ``path``: a damaged stream, one that does not hold a FITS file, or one that
+        inflates beyond the bound.
+    """
+    limit = min(MAX_INFLATION * os.path.getsize(resolved), MAX_GZIP_BYTES)
+    total = 0
+    try:
+        with gzip.open(resolved, "rb") as stream:
+            first = stream.read(len(FITS_MAGIC))
+            if first != FITS_MAGIC:
+                raise CellCoaddFormatError(
+                    path, "not a FITS file (its gzip stream does not start with SIMPLE)"
+                )
+            total = len(first)
+            while chunk := stream.read(1 << 20):
+                total += len(chunk)
+                if total > limit:
+                    raise CellCoaddFormatError(
+                        path,
+                        f"its gzip stream inflates beyond {limit} bytes (at most "
+                        f"{MAX_INFLATION}:1 and {MAX_GZIP_BYTES} bytes; forged?)",
+                    )
+    except (OSError, EOFError, zlib.error) as err:
+        raise CellCoaddFormatError(path, f"a damaged gzip stream ({err})") from None
+    return total
 
 
 class MefFile:
@@ -30,10 +73,13 @@ class MefFile:
     HDUs found by number, EXTNAME or EXTTYPE, boxes of pixels read; errors name the file
     and the HDU."""
 
-    def __init__(self, path: str, fits_file: fitsio.FITS, descriptor: int | None):
+    def __init__(
+        self, path: str, fits_file: fitsio.FITS, descriptor: int | None, size: int
+    ) -> None:
         self.path = path
         self.fits = fits_file
         self.descriptor = descriptor  # the file's own bytes (see io.fits_headers), or None
+        self.size = size  # bytes of the FITS content (inflated, for a gzip stream)
         self._cache: dict[int, fitsio.FITSHDR] = {}
 
     def fail(self, index: int | None, problem: str) -> CellCoaddFormatError:
@@ -100,8 +146,7 @@ class MefFile:
             raise self.fail(index, f"the {what} has BITPIX {bitpix!r}")
         declared = pixels * abs(bitpix) // 8
         offsets = self.fits[index].get_offsets()
-        size = os.fstat(self.descriptor).st_size if self.descriptor is not None else 0
-        stored = max(0, min(int(offsets["data_end"]), size) - int(offsets["data_start"]))
+        stored = max(0, min(int(offsets["data_end"]), self.size) - int(offsets["data_start"]))
         if declared > MAX_INFLATION * stored + 2880:
             raise self.fail(
                 index,
@@ -136,18 +181,25 @@ def open_mef(path: str) -> Iterator[MefFile]:
         resolved = gate_read(path, what="exposure file", fits=True)
     except FileNotFoundError:
         raise CellCoaddFormatError(path, "no such file") from None
+    inflated: int | None = None  # a gzip stream's size, which CFITSIO holds in memory
     if not starts_like_fits(resolved):
-        # CFITSIO would inflate a gzip (or compress, bzip2) stream into memory first
-        raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
+        with open(resolved, "rb") as raw:
+            magic = raw.read(len(_GZIP_MAGIC))
+        if magic != _GZIP_MAGIC:
+            # CFITSIO would also inflate compress and bzip2 streams into memory first
+            raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
+        inflated = check_gzip_stream(path, resolved)
     fits_file: Any = None
     descriptor: int | None = None
     try:
         try:
-            descriptor = os.open(resolved, os.O_RDONLY)
+            if inflated is None:  # not inflated by CFITSIO: its bytes are the HDUs
+                descriptor = os.open(resolved, os.O_RDONLY)
             fits_file = fitsio.FITS(resolved)
         except (OSError, ValueError) as err:
             raise CellCoaddFormatError(path, f"not a readable FITS file ({err})") from None
-        yield MefFile(path, fits_file, descriptor)
+        size = inflated if descriptor is None else os.fstat(descriptor).st_size
+        yield MefFile(path, fits_file, descriptor, size or 0)
     finally:
         if descriptor is not None:
             os.close(descriptor)
