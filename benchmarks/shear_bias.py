@@ -42,7 +42,7 @@ from cellcoadd.pipelines.bias_presets import (
     describe_settings,
     row_settings,
 )
-from cellcoadd.pipelines.shear_validation import PAPER_TABLE1_ROWS
+from cellcoadd.pipelines.bias_table import PAPER_TABLE1_ROWS
 
 #: sigma(m1) of the paper's metacal rows.
 PAPER_SIGMA_M = 4.0e-4

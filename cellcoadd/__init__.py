@@ -53,7 +53,9 @@ _EXPORTS: dict[str, str] = {
     "MissingDependencyError": "cellcoadd.errors",
     "PsfCodecError": "cellcoadd.errors",
     "PsfError": "cellcoadd.errors",
+    "RunLockedError": "cellcoadd.errors",
     "ShearError": "cellcoadd.errors",
+    "TractRunError": "cellcoadd.errors",
     "BuildConfig": "cellcoadd.model.build_config",
     "CellCoadd": "cellcoadd.model.cell_coadd",
     "Exposure": "cellcoadd.model.exposure",
@@ -74,6 +76,9 @@ _EXPORTS: dict[str, str] = {
     "read": "cellcoadd.io",
     "read_cell": "cellcoadd.io",
     "read_exposure": "cellcoadd.io",
+    "read_psfex": "cellcoadd.io",
+    "read_piff": "cellcoadd.io",
+    "read_psf_file": "cellcoadd.io",
     "write": "cellcoadd.io",
     "write_exposure": "cellcoadd.io",
     "read_lsst_exposure": "cellcoadd.io",
@@ -147,10 +152,12 @@ __all__ = [
     "PsfError",
     "PsfModel",
     "PsfexPsf",
+    "RunLockedError",
     "ShearError",
     "SkyMap",
     "SkyMapConfig",
     "Tract",
+    "TractRunError",
     "ValidationSettings",
     "__version__",
     "build_cell",
@@ -167,6 +174,9 @@ __all__ = [
     "read_exposure",
     "read_lsst_exposure",
     "read_mef_exposure",
+    "read_piff",
+    "read_psf_file",
+    "read_psfex",
     "to_lsst_images",
     "to_ngmix",
     "to_observation",
@@ -178,7 +188,21 @@ __all__ = [
 ]
 
 
-__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
+#: sub-packages reachable as attributes after ``import cellcoadd`` (``cellcoadd.io``)
+_SUBPACKAGES = (
+    "analysis",
+    "builder",
+    "errors",
+    "geometry",
+    "io",
+    "model",
+    "pipelines",
+    "plots",
+    "shear",
+    "sim",
+)
+
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS, _SUBPACKAGES)
 
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
@@ -213,7 +237,9 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         MissingDependencyError,
         PsfCodecError,
         PsfError,
+        RunLockedError,
         ShearError,
+        TractRunError,
     )
     from cellcoadd.geometry import (
         Box,
@@ -238,6 +264,9 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         read_exposure,
         read_lsst_exposure,
         read_mef_exposure,
+        read_piff,
+        read_psf_file,
+        read_psfex,
         write,
         write_exposure,
     )

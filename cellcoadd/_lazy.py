@@ -9,7 +9,10 @@ from typing import Any
 
 
 def lazy_exports(
-    package: str, namespace: dict[str, Any], exports: dict[str, str]
+    package: str,
+    namespace: dict[str, Any],
+    exports: dict[str, str],
+    submodules: tuple[str, ...] = (),
 ) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
     """The module ``__getattr__`` and ``__dir__`` of ``package`` for ``exports``.
 
@@ -22,10 +25,16 @@ def lazy_exports(
         do not come back here.
     exports : dict
         Public name -> module that defines it.
+    submodules : tuple of str
+        Sub-packages reachable as attributes (``package.io``), imported on first use.
     """
 
     def getattr_(name: str) -> Any:
         module = exports.get(name)
+        if module is None and name in submodules:
+            value = import_module(f"{package}.{name}")  # the import sets the attribute too
+            namespace[name] = value
+            return value
         if module is None:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
         value = getattr(import_module(module), name)
@@ -33,6 +42,6 @@ def lazy_exports(
         return value
 
     def dir_() -> list[str]:
-        return sorted(set(namespace) | set(exports))
+        return sorted(set(namespace) | set(exports) | set(submodules))
 
     return getattr_, dir_

@@ -30,6 +30,8 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
   description that cannot be encoded or decoded: :class:`PsfCodecError`.
 - A build that cannot proceed: :class:`BuildError`; one cell failed: :class:`CellBuildError`;
   a pixel mapping out of tolerance: :class:`MappingError`.
+- A tract run whose patches failed: :class:`TractRunError` (names them and why); another
+  run holds its output directory: :class:`RunLockedError` (names the holder).
 - A shear measurement that cannot run: :class:`ShearError`, or :class:`MetacalError`,
   :class:`BfdError`, :class:`EmptyCellError` (a cell without inputs).
 - A computation that failed although its inputs were valid (a sampler that does not
@@ -87,6 +89,8 @@ their facts (they cross process boundaries in parallel builds)::
     ├── BuildError                            a build cannot proceed
     │   ├── CellBuildError (RuntimeError)     one cell failed (names the cell, traceback)
     │   └── MappingError (ValueError)         a pixel mapping out of tolerance
+    ├── TractRunError                         patches of a tract run failed (names them)
+    │   └── RunLockedError                    another run holds the output directory
     ├── CellCoaddRuntimeError (RuntimeError)  a computation failed on valid inputs
     ├── CellCoaddFloatingPointError           non-finite results (FloatingPointError)
     ├── MissingDependencyError (ImportError)  an optional dependency is not installed
@@ -128,7 +132,9 @@ __all__ = [
     "MissingDependencyError",
     "PsfCodecError",
     "PsfError",
+    "RunLockedError",
     "ShearError",
+    "TractRunError",
 ]
 
 #: the facts every error may carry, in the order :attr:`CellCoaddError.facts` lists them
@@ -419,6 +425,14 @@ class CellBuildError(BuildError, RuntimeError):
 
 class MappingError(BuildError, CellCoaddValueError):
     """The cell -> exposure pixel mapping cannot be computed within the tolerance."""
+
+
+class TractRunError(CellCoaddError):
+    """A tract run could not build every patch (names the failed patches and why)."""
+
+
+class RunLockedError(TractRunError):
+    """Another run holds the output directory's lock (names the directory and the holder)."""
 
 
 class CellCoaddRuntimeError(CellCoaddError, RuntimeError):

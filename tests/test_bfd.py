@@ -8,7 +8,7 @@ import pytest
 
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE
 from cellcoadd.shear import bfd
-from cellcoadd.shear.bfd_prior import _half_plane, _inverse_shear
+from cellcoadd.shear.bfd._prior import _half_plane, _inverse_shear
 
 SCALE = 0.2
 # u West: du/dx < 0; a rotated, slightly sheared pixel grid tests the jacobian handling.

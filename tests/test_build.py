@@ -12,6 +12,7 @@ import pytest
 from exposure_factory import make_exposure
 
 from cellcoadd import Box, BuildConfig, SkyMap, SkyMapConfig, build_cell, build_patch
+from cellcoadd.model.psf import GalSimPsf
 
 CONFIG = SkyMapConfig(cell_inner=40, cell_border=15, cells_per_patch=2, patches_per_tract=1)
 # counts at the inputs' zero point 30, so pixel values compare with the inputs' as is
@@ -306,7 +307,9 @@ def test_a_failing_cell_is_named(tract, patch_inputs):
     def failing_psf(x, y):
         raise ZeroDivisionError("boom")
 
-    bad = dataclasses.replace(make_exposure(exposures[0].wcs.wcs.crval, visit=99), psf=failing_psf)
+    bad = dataclasses.replace(
+        make_exposure(exposures[0].wcs.wcs.crval, visit=99), psf=GalSimPsf(failing_psf)
+    )
     # recorded as bad_psf, not a failure
     ok = build_patch(tract.patch(0, 0), [*exposures, bad], BUILD, seed=1, progress=False)
     assert any(r.status == "bad_psf" for c in ok.cells.values() for r in c.inputs)
@@ -326,7 +329,9 @@ def test_bad_inputs_are_refused_or_recorded(tract):
     def broken_psf(x, y):
         raise RuntimeError("no PSF model here")
 
-    bad_psf = dataclasses.replace(make_exposure(cell.center_sky, visit=3), psf=broken_psf)
+    bad_psf = dataclasses.replace(
+        make_exposure(cell.center_sky, visit=3), psf=GalSimPsf(broken_psf)
+    )
     coadd = build_cell(cell, [good, bad_psf], BUILD)
     assert {r.visit: r.status for r in coadd.inputs} == {1: "used", 3: "bad_psf"}
 

@@ -10,6 +10,7 @@ import fitsio
 import numpy as np
 import pytest
 from astropy.io import fits
+from astropy.table import Table
 from astropy.wcs import WCS
 from click.testing import CliRunner
 from coadd_factory import (
@@ -25,13 +26,15 @@ from coadd_factory import (
 from cellcoadd.builder.patch import build_patch
 from cellcoadd.cli.storage import convert_command, info_command, patch_summary
 from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.geometry import SkyMap
 from cellcoadd.io import api
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file
+from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
 from cellcoadd.model.cell_coadd import CellCoadd
-from cellcoadd.model.patch_coadd import PatchCoadd
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 from cellcoadd.model.units import NJY_ZERO_POINT
 
-LSST_HDUS = ["", "", "CELL", "VISIT", "MASKDEF", "VISIT_SUMMARY"]
+LSST_HDUS = ["", "", "CELL", "VISIT", "MASKDEF", "VISIT_SUMMARY", "APCORR"]
 
 
 @pytest.fixture(scope="module")
@@ -43,6 +46,7 @@ def _lsst_part(source, target) -> None:
     """Copy the LSST HDUs only (what the LSST writer makes), with astropy like LSST does."""
     with fits.open(source) as hdus:
         kept = fits.HDUList([hdu.copy() for hdu in hdus[: len(LSST_HDUS)]])
+        kept[0].header.remove("CCNHDU")  # our HDU count (an LSST writer does not state it)
         kept.writeto(target, checksum=True)
 
 
@@ -95,6 +99,23 @@ def test_empty_cells_are_absent_from_the_grid(tmp_path, patch):
     assert empty and ids == grid - empty
     n_used = sum(cell.n_used for cell in patch.values())
     assert len(used) == n_used and used["overlaps_center"].all()
+
+
+def test_mask_planes_carry_rubin_names(tmp_path, patch):
+    """MASKDEF lists afw's names (our EDGE, an input detector's edge, is SENSOR_EDGE)."""
+    path = api.write(patch, tmp_path / "cells.fits", layout="cell_coadds")
+    with fitsio.FITS(str(path)) as hdus:
+        table = hdus["MASKDEF"].read()
+    pairs = zip(table["MASK_NAME"], table["BIT_VALUE"], strict=True)
+    names = {str(name).strip(): int(bit) for name, bit in pairs}
+    ours = patch.metadata.mask_bits.bits
+    assert names["SENSOR_EDGE"] == ours["EDGE"] and "EDGE" not in names
+    assert {k: names[k] for k in ("SAT", "CR", "INTRP", "BAD", "NO_DATA")} == {
+        k: ours[k] for k in ("SAT", "CR", "INTRP", "BAD", "NO_DATA")
+    }
+    lsst = tmp_path / "lsst.fits"
+    _lsst_part(path, lsst)
+    assert api.read(lsst).metadata.mask_bits == patch.metadata.mask_bits  # and back
 
 
 def test_an_empty_cell_that_is_not_canonical_keeps_a_row(tmp_path):
@@ -152,93 +173,106 @@ def test_without_our_extension(tmp_path, patch):
 
 
 # ------------------------------------------------------------------------------ by hand
+#
+# Files laid out exactly as lsst.cell_coadds' writeMultipleCellCoaddAsFits (file VERSION
+# 0.8) lays them out, written here with astropy as it does: an empty primary HDU holding
+# the tract WCS (afw SkyWcs.getFitsMetadata(): CD matrix, ICRS); an unnamed binary table
+# with one row per cell (cell_id 2I; image, mask, variance, psf, maskfrac, noise_NN with
+# TDIM) and the grid and identity keywords; CELL, VISIT, MASKDEF, VISIT_SUMMARY and APCORR
+# tables; checksums. The geometry is lsst_cells_v1's: 150 + 2 x 50 px cells, a 22 x 22
+# grid per patch, 3000-px patches of 30000-px tracts with the tangent point on pixel 14999.
 
-CELL_INNER, BORDER, PSF, NOISE = 10, 4, 7, 2
+CELL_INNER, BORDER, PSF, NOISE = 150, 50, 11, 2
 OUTER = CELL_INNER + 2 * BORDER
-#: cells_per_patch 2 with one border cell: a 4 x 4 grid; patch (1, 2) of a 3 x 3-patch tract
-GRID, PATCH, TRACT_PIXELS = 4, (1, 2), 60
-GRMIN = ((PATCH[0] * 2 - 1) * CELL_INNER, (PATCH[1] * 2 - 1) * CELL_INNER)
+GRID, PATCH, TRACT = 22, (3, 4), 5063  # ECDFS in Data Preview 1
+GRMIN = ((PATCH[0] * 20 - 1) * CELL_INNER, (PATCH[1] * 20 - 1) * CELL_INNER)
 LSST_MASK = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5, "NO_DATA": 8}
 #: grid-local cell ids written, in an order of our choice (the LSST writer keeps insertion)
-CELL_IDS = [(2, 1), (0, 0), (3, 3), (1, 2)]
+CELL_IDS = [(2, 1), (0, 0), (21, 21), (1, 2)]
+VISITS = [(2024112300230, "r_03", 20241123), (2024112400094, "r_03", 20241124)]
 
 
-def _tract_wcs_cards() -> list[dict]:
-    """What afw's SkyWcs.getFitsMetadata() gives for a tract WCS (CD matrix, ICRS)."""
+def _lsst_tract_centre(tract: int) -> tuple[float, float]:
+    """Tract centre of lsst_cells_v1, straight from the ring layout (120 rings)."""
+    ring_size = math.pi / 121
+    index = tract - 1
+    for ring in range(120):
+        start = ring_size * (ring + 0.5) - math.pi / 2
+        edge = min(abs(start), abs(start + ring_size))
+        count = int(2 * math.pi * math.cos(edge) / ring_size) + 1
+        if index < count:
+            ra = 2 * math.pi * index / count
+            return math.degrees(ra), math.degrees(ring_size * (ring + 1) - math.pi / 2)
+        index -= count
+    raise AssertionError("tract beyond the rings")
+
+
+def _tract_wcs_cards(crpix: float = 15000.0, tract: int = TRACT) -> dict:
+    """What afw's SkyWcs.getFitsMetadata() gives for an lsst_cells_v1 tract WCS."""
     scale = 0.2 / 3600
-    centre = (TRACT_PIXELS - 1) / 2 + 1
-    values = {
+    ra, dec = _lsst_tract_centre(tract)
+    return {
         "RADESYS": "ICRS",
         "EQUINOX": 2000.0,
         "CTYPE1": "RA---TAN",
         "CTYPE2": "DEC--TAN",
         "CUNIT1": "deg",
         "CUNIT2": "deg",
-        "CRPIX1": centre,
-        "CRPIX2": centre,
-        "CRVAL1": 52.5,
-        "CRVAL2": -28.0,
+        "CRPIX1": crpix,
+        "CRPIX2": crpix,
+        "CRVAL1": ra,
+        "CRVAL2": dec,
         "CD1_1": -scale,
         "CD1_2": 0.0,
         "CD2_1": 0.0,
         "CD2_2": scale,
     }
-    return [{"name": k, "value": v} for k, v in values.items()]
 
 
-def _write_by_hand(path, *, version="0.8", units="nJy", mask_value=None, skip=()) -> dict:
-    """An lsst.cell_coadds file written field by field with fitsio, as the layout says."""
+def _write_by_hand(
+    path,
+    *,
+    version="0.8",
+    units="nJy",
+    mask_value=None,
+    skip=(),
+    extra=None,
+    wcs=None,
+    skymap="lsst_cells_v1",
+) -> dict:
+    """An lsst.cell_coadds file written with astropy, column by column as its writer does."""
     rng = np.random.default_rng(4)
-    plane = (OUTER, OUTER)
-    dtype = [("cell_id", ">i2", (2,)), ("image", ">f4", plane), ("mask", ">i4", plane)]
-    dtype += [("variance", ">f4", plane), ("psf", ">f8", (PSF, PSF)), ("maskfrac", ">f4", plane)]
-    dtype += [(f"noise_{n:02}", ">f4", plane) for n in range(NOISE)]
-    table = np.zeros(len(CELL_IDS), dtype=dtype)
-    for row, cell_id in enumerate(CELL_IDS):
-        table[row]["cell_id"] = cell_id
-        for name in ("image", "variance", "maskfrac", *(f"noise_{n:02}" for n in range(NOISE))):
-            table[row][name] = rng.standard_normal(plane)
-        table[row]["mask"] = rng.choice([0, 1, 2, 4, 8, 32, 256, 33], size=plane)
+    rows = []
+    for cell_id in CELL_IDS:
+        planes = {
+            name: rng.standard_normal((OUTER, OUTER)).astype(np.float32)
+            for name in ("image", "variance", "maskfrac", *(f"noise_{n:02}" for n in range(NOISE)))
+        }
+        planes["mask"] = rng.choice([0, 1, 2, 4, 8, 32, 256, 33], size=(OUTER, OUTER)).astype(
+            np.int32
+        )
         psf = rng.uniform(size=(PSF, PSF))
-        table[row]["psf"] = psf / psf.sum()
+        planes["psf"] = psf / psf.sum()
+        rows.append((cell_id, planes))
     if mask_value is not None:
-        table[0]["mask"][0, 0] = mask_value
-    # CELL: (cell_x, cell_y, visit, detector, overlaps_center, overlap_fraction, weight,
-    # psf_shape_ixx, psf_shape_iyy, psf_shape_ixy, psf_shape_flag)
-    links = [
-        (2, 1, 1001, 10, True, 1.0, 0.5, 3.0, 2.0, 0.25, False),
-        (2, 1, 1002, 11, True, 1.0, 0.25, 2.5, 2.5, 0.0, False),
-        (0, 0, 1001, 12, True, 1.0, 0.75, 0.0, 0.0, 0.0, True),
-        (3, 3, 1002, 11, True, 0.875, 1.5, 2.0, 2.0, -0.5, False),
-        (1, 2, 1003, 10, True, 1.0, 2.0, 2.25, 2.75, 0.5, False),
-    ]
-    names = "cell_x cell_y visit detector overlaps_center overlap_fraction weight".split()
-    names += ["psf_shape_ixx", "psf_shape_iyy", "psf_shape_ixy", "psf_shape_flag"]
-    cell = np.array(
-        links, dtype=list(zip(names, ["i8"] * 4 + ["?"] + ["f8"] * 5 + ["?"], strict=True))
-    )
-    visit = np.array(
-        [(1001, "r_57", 20250101), (1002, "r_57", 20250102), (1003, "r_57", 20250103)],
-        dtype=[("visit", "i8"), ("physical_filter", "S4"), ("day_obs", "i8")],
-    )
-    maskdef = np.array(
-        [(n.encode(), b) for n, b in LSST_MASK.items()],
-        dtype=[("MASK_NAME", "S17"), ("BIT_VALUE", "u4")],
-    )
-    keys = {(v, d) for _, _, v, d, *_ in links}
-    summary = np.zeros(
-        len(keys),
-        dtype=[
-            ("visit", "i8"),
-            ("detector", "i2"),
-            ("physical_filter", "S32"),
-            ("day_obs", "i8"),
-            ("num_vertices", "i2"),
-            ("polygon_vertices", "f4", (8, 2)),
-        ],
-    )
-    for row, (v, d) in enumerate(sorted(keys)):
-        summary[row] = (v, d, b"r_57", 20250101, 4, np.zeros((8, 2)))
+        rows[0][1]["mask"][0, 0] = mask_value
+
+    def column(name, fmt, unit=None):
+        arrays = [planes[name] for _, planes in rows]
+        shape = arrays[0].shape
+        return fits.Column(
+            name=name,
+            format=f"{arrays[0].size}{fmt}",
+            dim=f"({shape[1]}, {shape[0]})",
+            unit=unit,
+            array=arrays,
+        )
+
+    columns = [fits.Column(name="cell_id", format="2I", array=[c for c, _ in rows])]
+    columns += [column("image", "E", units), column("mask", "J"), column("variance", "E")]
+    columns += [column("psf", "D"), column("maskfrac", "E")]
+    columns += [column(f"noise_{n:02}", "E") for n in range(NOISE)]
+    table = fits.BinTableHDU.from_columns(fits.ColDefs(columns))
     header = {
         "GRCELL1": CELL_INNER,
         "GRCELL2": CELL_INNER,
@@ -257,24 +291,66 @@ def _write_by_hand(path, *, version="0.8", units="nJy", mask_value=None, skip=()
         "VERSION": version,
         "TUNIT2": units,
         "TUNIT4": f"{units}**2",
-        "INSTRUME": "LSSTCam",
+        "INSTRUME": "LSSTComCam",
         "FILTER": "r",
-        "SKYMAP": "lsst_cells_v1",
-        "TRACT": 9813,
+        "SKYMAP": skymap,
+        "TRACT": TRACT,
         "PATCH_X": PATCH[0],
         "PATCH_Y": PATCH[1],
         "NNOISE": NOISE,
+        **(extra or {}),
     }
-    with fitsio.FITS(str(path), "rw", clobber=True) as out:
-        out.write(None, header=_tract_wcs_cards())
-        out.write(table, header=[{"name": k, "value": v} for k, v in header.items()])
-        for data, name in ((cell, "CELL"), (visit, "VISIT"), (maskdef, "MASKDEF")):
-            if name not in skip:
-                out.write(data, extname=name)
-        out.write(summary, extname="VISIT_SUMMARY", header={"POLYVERT": 8})
-        for hdu in out:
-            hdu.write_checksum()
-    return {"table": table, "links": links}
+    table.header.extend(list(header.items()))
+    # CELL: (cell_x, cell_y, visit, detector, overlaps_center, overlap_fraction, weight,
+    # psf_shape_ixx, psf_shape_iyy, psf_shape_ixy, psf_shape_flag), Python values as LSST's
+    v1, v2 = VISITS[0][0], VISITS[1][0]
+    links = [
+        (2, 1, v1, 4, True, 1.0, 0.5, 3.0, 2.0, 0.25, False),
+        (2, 1, v2, 5, True, 1.0, 0.25, 2.5, 2.5, 0.0, False),
+        (0, 0, v1, 3, True, 1.0, 0.75, 0.0, 0.0, 0.0, True),
+        (21, 21, v2, 5, True, 0.875, 1.5, 2.0, 2.0, -0.5, False),
+        (1, 2, v2, 4, True, 1.0, 2.0, 2.25, 2.75, 0.5, False),
+    ]
+    names = "cell_x cell_y visit detector overlaps_center overlap_fraction weight".split()
+    names += ["psf_shape_ixx", "psf_shape_iyy", "psf_shape_ixy", "psf_shape_flag"]
+    cell = np.rec.fromrecords(links, names=names)
+    visit = np.rec.fromrecords(VISITS, names=("visit", "physical_filter", "day_obs"))
+    maskdef = Table(names=("MASK_NAME", "BIT_VALUE"), dtype=(str, np.uint32))
+    for name, bit in LSST_MASK.items():
+        maskdef.add_row((name, bit))
+    keys = sorted({(v, d) for _, _, v, d, *_ in links})
+    days = dict((v, d) for v, _, d in VISITS)
+    vertices = [np.zeros((8, 2), dtype=np.float32) for _ in keys]
+    summary = fits.BinTableHDU.from_columns(
+        [
+            fits.Column(name="visit", format="K", array=[v for v, _ in keys]),
+            fits.Column(name="detector", format="I", array=[d for _, d in keys]),
+            fits.Column(name="physical_filter", format="32A", array=["r_03" for _ in keys]),
+            fits.Column(name="day_obs", format="K", array=[days[v] for v, _ in keys]),
+            fits.Column(name="num_vertices", format="I", array=[5 for _ in keys]),
+            fits.Column(name="polygon_vertices", format="16E", dim="(2,8)", array=vertices),
+        ],
+        name="VISIT_SUMMARY",
+    )
+    summary.header["POLYVERT"] = 8
+    apcorr = np.rec.fromrecords(
+        [(i, j, 1.0 + 0.01 * i) for i, j in CELL_IDS],
+        dtype=[("x", int), ("y", int), ("base_PsfFlux_instFlux", float)],
+    )
+    primary = fits.PrimaryHDU()
+    primary.header.extend(list((wcs or _tract_wcs_cards()).items()))
+    hdus = [primary, table]
+    for hdu in (
+        fits.BinTableHDU.from_columns(cell, name="CELL"),
+        fits.BinTableHDU.from_columns(visit, name="VISIT"),
+        fits.BinTableHDU.from_columns(maskdef.as_array(), name="MASKDEF"),
+        summary,
+        fits.BinTableHDU.from_columns(apcorr, name="APCORR"),
+    ):
+        if hdu.name not in skip:
+            hdus.append(hdu)
+    fits.HDUList(hdus).writeto(path, checksum=True, overwrite=True)
+    return {"rows": rows, "links": links}
 
 
 def test_a_file_written_by_hand_reads_correctly(tmp_path):
@@ -283,37 +359,50 @@ def test_a_file_written_by_hand_reads_correctly(tmp_path):
     assert is_cell_coadds_file(str(path))
     read = api.read(path)
     meta = read.metadata
-    assert (meta.tract, meta.patch, meta.band) == (9813, PATCH, "r")
+    lsst = SkyMap.named("lsst_cells_v1")
+    assert (meta.tract, meta.patch, meta.band) == (TRACT, PATCH, "r")
     assert (meta.units, meta.zero_point) == ("nJy", NJY_ZERO_POINT)
-    config = meta.skymap_config
-    assert (config.cell_inner, config.cell_border, config.cells_per_patch) == (10, 4, 2)
-    assert (config.patch_border_cells, config.patches_per_tract, config.pixel_scale) == (1, 3, 0.2)
-    assert meta.tract_center == (52.5, -28.0)
+    # the geometry is the declared sky map's: 10 x 10 patches, tangent point on 14999
+    assert meta.skymap_config == lsst.config and meta.skymap_config.name == "lsst_cells_v1"
+    assert meta.tract_center == lsst[TRACT].center
     assert meta.mask_bits.bits == LSST_MASK
     assert (meta.n_noise, meta.psf_size) == (NOISE, PSF)
-    first = (PATCH[0] * 2 - 1, PATCH[1] * 2 - 1)  # tract-global index of grid cell (0, 0)
-    expected_ids = sorted((first[0] + i, first[1] + j) for i, j in CELL_IDS)
-    assert list(read) == expected_ids
-    tract = WCS(fits.Header({c["name"]: c["value"] for c in _tract_wcs_cards()}))
-    for row, (i, j) in enumerate(CELL_IDS):
+    assert meta.observations is not None and meta.observations.instrument == "LSSTComCam"
+    assert [(v.visit, v.physical_filter, v.day_obs) for v in meta.observations.visits] == VISITS
+    first = (PATCH[0] * 20 - 1, PATCH[1] * 20 - 1)  # tract-global index of grid cell (0, 0)
+    expected_ids = sorted(((first[0] + i, first[1] + j) for i, j in CELL_IDS), key=lambda k: k)
+    assert sorted(read) == expected_ids
+    tract = WCS(fits.Header(_tract_wcs_cards()))
+    # the stored geometry is the file's own WCS (to FITS precision), tract pixel for pixel
+    corners = [[0, 0], [29999, 0], [29999, 29999], [GRMIN[0], GRMIN[1]]]
+    ours = meta.geometry.tract.wcs
+    assert (
+        np.abs(ours.wcs_world2pix(tract.wcs_pix2world(corners, 0), 0) - np.array(corners)).max()
+        < 1e-6
+    )
+    for (i, j), planes in written["rows"]:
         cell = read[first[0] + i, first[1] + j]
-        data = written["table"][row]
         assert cell.inner_bbox.x_start == GRMIN[0] + i * CELL_INNER
         assert cell.inner_bbox.y_start == GRMIN[1] + j * CELL_INNER
         assert cell.outer_bbox.x_start == cell.inner_bbox.x_start - BORDER
         assert cell.shape == (OUTER, OUTER)
         # array pixel (x, y) of a cell is tract pixel outer start + (x, y)
         x0, y0 = cell.outer_bbox.x_start, cell.outer_bbox.y_start
-        assert np.allclose(
-            cell.wcs.wcs_pix2world([[3, 5]], 0), tract.wcs_pix2world([[x0 + 3, y0 + 5]], 0)
-        )
-        assert np.array_equal(cell.image, data["image"].astype(np.float32))
-        assert np.array_equal(cell.variance, data["variance"].astype(np.float32))
-        assert np.array_equal(cell.mfrac, data["maskfrac"].astype(np.float32))
-        assert np.array_equal(cell.mask, data["mask"].astype(np.int32))
-        assert np.array_equal(cell.psf, data["psf"].astype(np.float64))
+        sky = cell.wcs.wcs_pix2world([[3, 5], [120, 77]], 0)
+        assert np.allclose(sky, tract.wcs_pix2world([[x0 + 3, y0 + 5], [x0 + 120, y0 + 77]], 0))
+        # our sky map puts the cell centre in this very cell
+        ((ra, dec),) = cell.wcs.wcs_pix2world([[OUTER // 2, OUTER // 2]], 0)
+        where = lsst.locate([ra], [dec])[0]
+        assert (where["tract"], where["cell_x"], where["cell_y"]) == (TRACT, *cell.index)
+        owner = (cell.index[0] // 20, cell.index[1] // 20)  # border cells: a neighbour's
+        assert (where["patch_x"], where["patch_y"]) == owner
+        for name in ("image", "variance"):
+            assert np.array_equal(getattr(cell, name), planes[name])
+        assert np.array_equal(cell.mfrac, planes["maskfrac"])
+        assert np.array_equal(cell.mask, planes["mask"])
+        assert np.array_equal(cell.psf, planes["psf"])
         for n in range(NOISE):
-            assert np.array_equal(cell.noise[n], data[f"noise_{n:02}"].astype(np.float32))
+            assert np.array_equal(cell.noise[n], planes[f"noise_{n:02}"])
         links = [link for link in written["links"] if link[:2] == (i, j)]
         assert [(r.visit, r.detector, r.weight, r.overlap_fraction) for r in cell.inputs] == [
             (v, d, w, f) for _, _, v, d, _, f, w, *_ in links
@@ -326,18 +415,134 @@ def test_a_file_written_by_hand_reads_correctly(tmp_path):
             assert math.isclose(record.psf_e1, (ixx - iyy) / (ixx + iyy))
             assert math.isclose(record.psf_e2, 2 * ixy / (ixx + iyy))
             assert math.isclose(record.psf_T, (ixx + iyy) * 0.04)  # T = Ixx + Iyy, arcsec^2
-    # the masks' named bits are the file's
-    assert read[first[0] + 2, first[1] + 1].mask.max() <= 256 + 32 + 8
     summary = patch_summary(str(path))
     assert summary["format"] == "cell_coadds" and summary["layout_version"] == "0.8"
     assert summary["inputs"]["used"] == len(written["links"])
 
 
-def test_legacy_units_are_counts(tmp_path):
+def test_rubin_file_round_trip_keeps_its_identity(tmp_path):
+    """Rubin -> cellcoadd -> Rubin: sky map, instrument, physical filter, day_obs, geometry."""
+    source = tmp_path / "lsst.fits"
+    _write_by_hand(source)
+    again = api.write(api.read(source), tmp_path / "again.fits", layout="cell_coadds")
+    lsst = tmp_path / "again_lsst_only.fits"
+    _lsst_part(again, lsst)
+    with fits.open(source) as a, fits.open(lsst) as b:
+        for key in ("SKYMAP", "INSTRUME", "FILTER", "TRACT", "PATCH_X", "PATCH_Y", "TUNIT2"):
+            assert a[1].header[key] == b[1].header[key], key
+        for key in ("GRMIN1", "GRMIN2", "GRSHAPE1", "GRCELL1", "OCELL1", "INBBOX21"):
+            assert a[1].header[key] == b[1].header[key], key
+        assert [h.name for h in b] == ["PRIMARY", "", *LSST_HDUS[2:]]
+        visit_a, visit_b = a["VISIT"].data, b["VISIT"].data
+        assert list(visit_b["visit"]) == list(visit_a["visit"])
+        assert list(visit_b["physical_filter"]) == list(visit_a["physical_filter"])
+        assert list(visit_b["day_obs"]) == list(visit_a["day_obs"])
+        assert list(b["VISIT_SUMMARY"].data["day_obs"]) == list(a["VISIT_SUMMARY"].data["day_obs"])
+        tract_a = WCS(a[0].header)
+        tract_b = WCS(b[0].header)
+        corners = [[0, 0], [29999, 29999], [14999, 14999]]
+        assert np.allclose(
+            tract_a.wcs_pix2world(corners, 0), tract_b.wcs_pix2world(corners, 0), rtol=0, atol=1e-10
+        )
+        # every cell the file holds has its (empty) aperture-correction map
+        assert len(b["APCORR"].data) == len(b[1].data)
+    reread = api.read(lsst)
+    assert reread.metadata.skymap_config.name == "lsst_cells_v1"
+    assert reread.metadata.observations == api.read(source).metadata.observations
+
+
+def test_the_wcs_must_agree_with_the_declared_sky_map(tmp_path):
+    path = tmp_path / "lsst.fits"
+    _write_by_hand(path, wcs=_tract_wcs_cards(crpix=14999.5))  # our old box-centre tangent
+    with pytest.raises(
+        CellCoaddFormatError, match=r"HDU 0.*disagrees with SKYMAP = 'lsst_cells_v1'"
+    ):
+        api.read(path)
+    _write_by_hand(path, wcs=_tract_wcs_cards(tract=TRACT + 1))
+    with pytest.raises(CellCoaddFormatError, match=r"patch corners are [\d.e+]+ px from"):
+        api.read(path)
+
+
+def test_the_cell_grid_must_agree_with_the_declared_sky_map(tmp_path):
+    path = tmp_path / "lsst.fits"
+    _write_by_hand(path, extra={"OCELL1": 300, "OCELL2": 300})
+    with pytest.raises(
+        CellCoaddFormatError, match=r"has cells of 150 px inner, 250 px outer.*has 150, 300"
+    ):
+        api.read(path)
+
+
+def test_unknown_sky_map_without_tract_size_is_refused(tmp_path):
+    path = tmp_path / "lsst.fits"
+    _write_by_hand(path, skymap="hsc_rings_v1")
+    with pytest.raises(CellCoaddFormatError, match=r"'hsc_rings_v1' is not a sky map.*TRACTPIX"):
+        api.read(path)
+    _write_by_hand(path, skymap="hsc_rings_v1", extra={"TRACTPIX": 30000})
+    meta = api.read(path).metadata
+    assert meta.skymap_config.patches_per_tract == 10
+    assert meta.skymap_config.tangent_pixel == 14999 and meta.skymap_config.name == "hsc_rings_v1"
+
+
+def test_legacy_units_need_a_zero_point(tmp_path):
     path = tmp_path / "lsst.fits"
     _write_by_hand(path, units="legacy", version="0.6")
+    with pytest.raises(CellCoaddFormatError, match=r"TUNIT2 = 'legacy'.*no MAGZERO.*27"):
+        api.read(path)
+    with CellCoaddsFile(str(path), legacy_zero_point=27.0) as opened:
+        assert (opened.metadata.units, opened.metadata.zero_point) == ("count", 27.0)
+    assert api.read(path, legacy_zero_point=27.5).metadata.zero_point == 27.5
+    _write_by_hand(path, units="legacy", extra={"MAGZERO": 30.0})
     meta = api.read(path).metadata
-    assert (meta.units, meta.zero_point) == ("count", 27.0)
+    assert (meta.units, meta.zero_point) == ("count", 30.0)
+    with pytest.raises(CellCoaddFormatError, match="MAGZERO = 30.0 but legacy_zero_point = 27"):
+        CellCoaddsFile(str(path), legacy_zero_point=27.0)
+
+
+def test_cli_takes_the_legacy_zero_point(tmp_path):
+    path = tmp_path / "lsst.fits"
+    _write_by_hand(path, units="legacy")
+    runner = CliRunner()
+    result = runner.invoke(info_command, [str(path)])
+    assert result.exit_code != 0 and "no MAGZERO" in result.output
+    result = runner.invoke(info_command, [str(path), "--json", "--legacy-zero-point", "27"])
+    assert result.exit_code == 0, result.output
+    assert '"zero_point": 27.0' in result.output
+    ours = tmp_path / "ours.h5"
+    result = runner.invoke(convert_command, [str(path), str(ours), "--legacy-zero-point", "27"])
+    assert result.exit_code == 0, result.output
+    assert api.read(ours).metadata.zero_point == 27.0
+
+
+def test_counts_are_written_with_their_zero_point(tmp_path):
+    counts = make_patch(seed=8)
+    meta = counts.metadata.model_copy(
+        update={
+            "units": "count",
+            "zero_point": 30.0,
+            "build_config": counts.metadata.build_config.model_copy(
+                update={"units": "count", "zero_point": 30.0}
+            ),
+        }
+    )
+    counts = PatchCoadd(PatchMetadata.model_validate(meta.model_dump()), counts.cells)
+    ours = api.write(counts, tmp_path / "ours.fits", layout="cell_coadds")
+    lsst = tmp_path / "lsst.fits"
+    _lsst_part(ours, lsst)
+    with fits.open(lsst) as hdus:
+        assert hdus[1].header["TUNIT2"] == "legacy" and hdus[1].header["MAGZERO"] == 30.0
+    read = api.read(lsst).metadata
+    assert (read.units, read.zero_point) == ("count", 30.0)  # not 27: fluxes as written
+
+
+def test_an_empty_patch_is_refused_clearly(tmp_path):
+    meta = make_metadata(SMALL)
+    empty = make_patch(seed=2, empty=tuple(meta.all_cell_indices))
+    target = tmp_path / "empty.fits"
+    with pytest.raises(
+        CellCoaddFormatError, match=r"empty\.fits: .*no cell with data.*empty patch"
+    ):
+        api.write(empty, target, layout="cell_coadds")
+    assert not target.exists()
 
 
 def test_cli_info_and_convert_both_ways(tmp_path, patch):

@@ -99,6 +99,8 @@ def library(tmp_path_factory):
 def _prepare(command: str, library: Path, work: Path) -> None:
     links = {
         "build": ["sim"],
+        "index": ["sim"],
+        "run": ["sim"],
         "info": ["patch.fits"],
         "show": ["demo-output"],
         "trim": ["demo-output", "cat.fits", "patch.fits"],
@@ -114,6 +116,14 @@ def _prepare(command: str, library: Path, work: Path) -> None:
         shutil.copy(library / "demo-output" / "coadd.h5", work / "patch.h5")
     if command == "locate":
         shutil.copy(library / "sk.json", work / "skymap.json")
+    if command == "init":  # a DES CCD (the real header) and an LSST visit image
+        from test_presets import DES_PSF, write_lsst, write_small_des
+
+        (work / "des-ccds").mkdir()
+        write_small_des(work / "des-ccds" / "D00154912_r_c12_r2369p01_immasked.fits.fz")
+        shutil.copy(DES_PSF, work / "des-ccds" / "D00154912_r_c12_r2369p01_psfexcat.psf")
+        (work / "visit_images").mkdir()
+        write_lsst(work / "visit_images" / "visit_image_2025061100123_94.fits")
     (work / "docs" / "images").mkdir(parents=True)
 
 

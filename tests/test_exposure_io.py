@@ -16,8 +16,9 @@ import pytest
 from astropy.wcs import WCS, Sip
 from survey_psf_factory import build_piff_model, write_psfex_file
 
-from cellcoadd.errors import CellCoaddFormatError, PsfCodecError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, PsfCodecError
 from cellcoadd.geometry.box import Box
+from cellcoadd.io import read_piff, read_psfex
 from cellcoadd.io.exposures.exposure_io import read_exposure, write_exposure
 from cellcoadd.io.exposures.psf_codec import decode_psf, encode_psf
 from cellcoadd.model.exposure import Exposure
@@ -145,7 +146,9 @@ def test_round_trip_profile_psf(tmp_path, variance_array, dtype):
         galsim.Gaussian(sigma=0.4, gsparams=galsim.GSParams(folding_threshold=1e-3)),
         galsim.Kolmogorov(fwhm=0.7).shear(e1=0.05, e2=0.0).dilate(1.07),
         galsim.Convolve(galsim.Kolmogorov(fwhm=0.6), galsim.Airy(lam_over_diam=0.1)),
-        galsim.Add(galsim.Gaussian(sigma=0.4, flux=0.7), galsim.Exponential(scale_radius=0.3)),
+        galsim.Add(
+            galsim.Gaussian(sigma=0.4, flux=0.7), galsim.Exponential(scale_radius=0.3, flux=0.3)
+        ),
     ],
 )
 def test_round_trip_other_profiles(tmp_path, psf):
@@ -168,7 +171,7 @@ def test_callable_psf_becomes_an_accurate_grid(tmp_path):
     def as_plain_function(x: float, y: float) -> galsim.GSObject:
         return psf(x, y)
 
-    exposure = make_exposure(as_plain_function)
+    exposure = make_exposure(GalSimPsf(as_plain_function))
     back = read_exposure(write_exposure(exposure, tmp_path / "e.fits"))
     assert isinstance(back.psf, GridPsf) and callable(back.psf)
     for x, y in [(0.0, 0.0), (40.0, 29.5), (79.0, 59.0), (13.7, 44.1)]:
@@ -191,7 +194,8 @@ def test_image_psf_round_trip(tmp_path):
 
 def test_unlisted_profile_is_sampled(tmp_path):
     moffat = galsim.Moffat(beta=3.5, fwhm=0.9)
-    psf = galsim.InterpolatedImage(moffat.drawImage(nx=65, ny=65, scale=0.05, method="no_pixel"))
+    stamp = moffat.drawImage(nx=65, ny=65, scale=0.05, method="no_pixel")
+    psf = galsim.InterpolatedImage(stamp, flux=1.0)  # a PSF has unit flux
     back = read_exposure(write_exposure(make_exposure(psf), tmp_path / "e.fits"))
     assert isinstance(back.psf, galsim.GSObject)
     assert np.max(np.abs(draw(back.psf) - draw(psf))) < 2e-3 * draw(psf).max()
@@ -388,7 +392,7 @@ def small_psfex(tmp_path_factory):
 
 
 def test_psfex_model_is_stored_whole(tmp_path, small_psfex):
-    model = PsfexPsf(small_psfex)
+    model = read_psfex(small_psfex)
     exposure = make_exposure(model)
     path = write_exposure(exposure, tmp_path / "e.fits")
     kind, desc = psf_meta(path)
@@ -408,7 +412,7 @@ def test_psfex_model_is_stored_whole(tmp_path, small_psfex):
 
 
 def test_tampered_psfex_copy_is_refused(tmp_path, small_psfex):
-    path = write_exposure(make_exposure(PsfexPsf(small_psfex)), tmp_path / "e.fits")
+    path = write_exposure(make_exposure(read_psfex(small_psfex)), tmp_path / "e.fits")
 
     def tamper(name, data, header):
         if name == "PSF":
@@ -437,13 +441,13 @@ def small_piff(tmp_path_factory):
 
 
 def test_piff_model_is_stored_whole(tmp_path, small_piff):
-    model = PiffPsf(small_piff, chipnum=7, origin=0)
+    model = read_piff(small_piff, trusted=True, chipnum=7, origin=0)
     exposure = make_exposure(model)
     path = write_exposure(exposure, tmp_path / "e.fits")
     kind, desc = psf_meta(path)
     assert kind == "PIFF"
     assert (desc["chipnum"], desc["origin"], desc["file_name"]) == (7, 0, "ccd7.piff")
-    back = read_exposure(path)
+    back = read_exposure(path, trust_psf=True)
     assert isinstance(back.psf, PiffPsf) and back.psf == model
     assert (back.psf.chipnum, back.psf.origin) == (7, 0)
     assert back.psf.data == small_piff.read_bytes()
@@ -452,18 +456,23 @@ def test_piff_model_is_stored_whole(tmp_path, small_piff):
         np.testing.assert_array_equal(back.draw_psf(x, y, box), exposure.draw_psf(x, y, box))
 
 
-def test_piff_exposure_opens_without_piff(tmp_path, small_piff, monkeypatch):
-    path = write_exposure(make_exposure(PiffPsf(small_piff)), tmp_path / "e.fits")
+def test_piff_exposure_needs_trust_and_piff(tmp_path, small_piff, monkeypatch):
+    """A stored Piff model (pickled objects) is loaded only when the reader trusts the
+    file, and then needs Piff: both refusals name the file, before any build."""
+    path = write_exposure(make_exposure(read_piff(small_piff, trusted=True)), tmp_path / "e.fits")
+    with pytest.raises(CellCoaddFormatError, match="pickled") as info:
+        read_exposure(path)
+    assert "e.fits" in str(info.value) and "ccd7.piff" in str(info.value)
+    assert isinstance(read_exposure(path, trust_psf=True).psf, PiffPsf)
     monkeypatch.setitem(sys.modules, "piff", None)  # import piff -> ImportError
-    back = read_exposure(path)  # opening needs no Piff
-    assert isinstance(back.psf, PiffPsf)
-    with pytest.raises(PsfError, match=r"cellcoadd\[piff\]"):
-        back.draw_psf(40.0, 30.0, _model_box(40.0, 30.0))
+    with pytest.raises(CellCoaddFormatError, match=r"cellcoadd\[piff\]"):
+        read_exposure(path, trust_psf=True)
 
 
 def _unlisted_profile() -> galsim.GSObject:
     moffat = galsim.Moffat(beta=3.5, fwhm=0.9)
-    return galsim.InterpolatedImage(moffat.drawImage(nx=65, ny=65, scale=0.05, method="no_pixel"))
+    stamp = moffat.drawImage(nx=65, ny=65, scale=0.05, method="no_pixel")
+    return galsim.InterpolatedImage(stamp, flux=1.0)
 
 
 def _plain_function(x: float, y: float) -> galsim.GSObject:
@@ -476,15 +485,14 @@ def _plain_function(x: float, y: float) -> galsim.GSObject:
         (galsim.Gaussian(sigma=0.4), GalSimPsf(galsim.Gaussian(sigma=0.4))),
         (_unlisted_profile(), GalSimPsf(_unlisted_profile())),
         (varying_psf(), GalSimPsf(varying_psf())),
-        (_plain_function, GalSimPsf(_plain_function)),
-        (_plain_function, CallablePsf(_plain_function, includes_pixel=False)),
+        (GalSimPsf(_plain_function), CallablePsf(_plain_function, includes_pixel=False)),
         (varying_psf(), CallablePsf(varying_psf(), includes_pixel=False)),
         (
             galsim.Moffat(beta=3.5, fwhm=0.9).drawImage(nx=25, ny=25, scale=0.27),
             ImagePsf(galsim.Moffat(beta=3.5, fwhm=0.9).drawImage(nx=25, ny=25, scale=0.27)),
         ),
     ],
-    ids=["profile", "sampled", "varying", "grid", "callable-no-pixel", "callable-varying", "image"],
+    ids=["profile", "sampled", "varying", "callable-no-pixel", "callable-varying", "image"],
 )
 def test_wrapped_forms_are_stored_like_bare_forms(tmp_path, bare, wrapped):
     path_bare = write_exposure(make_exposure(bare), tmp_path / "bare.fits")
@@ -609,7 +617,7 @@ def _e2e_build(tmp_path, psf_model, draw_star) -> list[tuple[float, float]]:
         )
         exposures.append(exposure)
         paths.append(write_exposure(exposure, tmp_path / f"visit{visit}.fits"))
-    from_files = [read_exposure(path) for path in paths]
+    from_files = [read_exposure(path, trust_psf=True) for path in paths]
     assert all(type(e.psf) is type(psf_model) and e.psf == psf_model for e in from_files)
     results = []
     for cell in cells:
@@ -642,7 +650,7 @@ def test_psfex_exposure_files_build_the_star_as_the_coadd_psf(tmp_path):
         psfex.getPSF(pos).drawImage(stamp, center=pos, method="no_pixel")
         return stamp.array
 
-    for t_error, residual in _e2e_build(tmp_path, PsfexPsf(info.path), draw_star):
+    for t_error, residual in _e2e_build(tmp_path, read_psfex(info.path), draw_star):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)
 
 
@@ -662,5 +670,5 @@ def test_piff_exposure_files_build_the_star_as_the_coadd_psf(tmp_path):
         psf.draw(x + 1, y + 1, image=stamp, center=(x + 1, y + 1))
         return stamp.array
 
-    for t_error, residual in _e2e_build(tmp_path, PiffPsf(info.path), draw_star):
+    for t_error, residual in _e2e_build(tmp_path, read_piff(info.path, trusted=True), draw_star):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)

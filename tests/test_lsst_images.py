@@ -68,8 +68,18 @@ def test_per_cell_round_trip_is_exact(patch: PatchCoadd, counts: bool) -> None:
     assert isinstance(one, lsst.images.cells.CellCoadd)
     assert str(one.unit) == ("ct" if counts else "nJy")
     assert one.bbox.x.start == cell.outer_bbox.x_start and one.bbox.y.stop == cell.outer_bbox.y_stop
-    assert set(one.mask.schema.names) == set(patch.metadata.mask_bits.bits)
+    # Rubin's plane names at our bit numbers: SAT is SATURATED, CR COSMIC_RAY, ...
+    rubin = {"SAT": "SATURATED", "CR": "COSMIC_RAY", "INTRP": "INTERPOLATED"}
+    rubin["EDGE"] = "SENSOR_EDGE"
+    bits = patch.metadata.mask_bits.bits
+    assert set(one.mask.schema.names) == {rubin.get(name, name) for name in bits}
+    for name, bit in bits.items():
+        assert one.mask.schema.bit(rubin.get(name, name)) == one.mask.schema.bit(
+            one.mask.schema[bit].name
+        )
+        assert np.array_equal(one.mask.get(rubin.get(name, name)), (cell.mask >> bit) & 1 != 0)
     assert one.mask.schema.descriptions["NO_DATA"]
+    assert one.mask.get("SATURATED").shape == cell.mask.shape
     assert len(one.noise_realizations) == patch.metadata.n_noise
     used = [r for r in cell.inputs if r.is_used]
     contributions = one.provenance.contributions
@@ -156,3 +166,18 @@ def test_refusals(patch: PatchCoadd) -> None:
     mixed = {**to_lsst_images(patch, "per_cell"), (9, 9): to_lsst_images(other, "per_cell")[0, 3]}
     with pytest.raises(InvalidCoaddError, match="different patches"):
         from_lsst_images(mixed)
+
+
+def test_lsst_images_command_line_reads_our_export(patch: PatchCoadd, tmp_path) -> None:
+    """lsst-images' own command line (it needs lsst-daf-butler, in the ``lsst`` extra)."""
+    from click.testing import CliRunner
+    from lsst.images.cli import main
+
+    path = tmp_path / "coadd.fits"
+    to_lsst_images(patch).write(str(path))
+    result = CliRunner().invoke(main, ["inspect", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "schema name:    cell_coadd" in result.output, result.output
+    described = CliRunner().invoke(main, ["describe", str(path)])
+    assert described.exit_code == 0, described.output
+    assert "SATURATED" in described.output and "COSMIC_RAY" in described.output

@@ -21,6 +21,7 @@ import cellcoadd.builder.exposure_frame as frame_module
 import cellcoadd.builder.select as select_module
 from cellcoadd import Box, Exposure, ExposureError, build_patch
 from cellcoadd.io.exposures.exposure_io import write_exposure
+from cellcoadd.model.psf import GalSimPsf
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +146,7 @@ def _bad_inputs(good: Exposure) -> dict[int, tuple[str, Exposure]]:
         ],
         "bad_pixels": [dict(image=np.where(grid, np.nan, good.image), mask=grid * intrp)],
         "bad_psf": [
-            dict(psf=psf)
+            dict(psf=GalSimPsf(psf))
             for psf in (
                 _raising,
                 _returns_even_image,
@@ -234,7 +235,7 @@ def test_a_cell_falling_off_the_exposure_projection_is_an_edge(tiny, monkeypatch
     ids=lambda f: f.__name__,
 )
 def test_exposure_whose_psf_cannot_be_stored_is_refused(tmp_path, tiny, psf):
-    exposure = dataclasses.replace(tiny[1][0], psf=psf)
+    exposure = dataclasses.replace(tiny[1][0], psf=GalSimPsf(psf))
     with pytest.raises(ExposureError, match=r"visit=0, detector=0\): its PSF cannot be stored"):
         write_exposure(exposure, tmp_path / "exposure.fits")
     assert os.listdir(tmp_path) == []

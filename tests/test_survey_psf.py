@@ -22,9 +22,10 @@ from astropy.wcs import WCS
 from survey_psf_factory import build_piff_model, write_psfex_file
 
 from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
-from cellcoadd.errors import ExposureError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, ExposureError, PsfError
 from cellcoadd.geometry.box import Box
-from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PiffPsf, PsfexPsf
+from cellcoadd.io import read_piff, read_psfex
+from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PsfexPsf
 
 DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"
 DES_HEADER = DES_DATA / "DECam_00154912_12_header.fits"
@@ -163,7 +164,7 @@ def test_psfex_star_equals_coadd_psf(psfex_file, layout):
     wcs_list = _layout_wcs_list(layout)
     center = wcs_list[0].all_pix2world([NX / 2], [NY / 2], 0)
     cells = _cells((float(center[0][0]), float(center[1][0])))
-    exposures = _exposures(wcs_list, PsfexPsf(psfex_file), _psfex_star(psfex_file), cells)
+    exposures = _exposures(wcs_list, read_psfex(psfex_file), _psfex_star(psfex_file), cells)
     for t_error, residual in _check_star_is_psf(exposures, cells):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)
 
@@ -192,7 +193,7 @@ def test_real_des_psfex_model_draws_where_galsim_does():
     """The real DECam model, drawn by PsfexPsf at 0-based (x, y), equals GalSim's
     DES_PSFEx at the 1-based position, and its size varies over the CCD."""
     _need_des_files()
-    model = PsfexPsf(DES_PSF)
+    model = read_psfex(DES_PSF)
     psfex = galsim.des.DES_PSFEx(str(DES_PSF))
     sizes = []
     for x, y in [(10.3, 20.7), (1023.5, 2047.5), (2037.2, 4080.9)]:
@@ -236,7 +237,7 @@ def test_piff_star_equals_coadd_psf(tmp_path, layout):
 
     center = wcs_list[0].all_pix2world([NX / 2], [NY / 2], 0)
     cells = _cells((float(center[0][0]), float(center[1][0])))
-    exposures = _exposures(wcs_list, PiffPsf(path), draw_star, cells)
+    exposures = _exposures(wcs_list, read_piff(path, trusted=True), draw_star, cells)
     for t_error, residual in _check_star_is_psf(exposures, cells):
         assert abs(t_error) < 1e-3 and residual < 1e-3, (t_error, residual)
 
@@ -244,18 +245,20 @@ def test_piff_star_equals_coadd_psf(tmp_path, layout):
 def test_models_pickle_and_refuse_bad_input(psfex_file, tmp_path):
     import pickle
 
-    model = PsfexPsf(psfex_file)
+    model = read_psfex(psfex_file)
     box = _stamp_box(500.2, 900.7, 10)
     before = model.draw(500.2, 900.7, box, np.eye(2))
     back = pickle.loads(pickle.dumps(model))
-    assert back == model and back._model is None
+    assert back == model
     np.testing.assert_array_equal(back.draw(500.2, 900.7, box, np.eye(2)), before)
     junk = tmp_path / "junk.psf"
     junk.write_bytes(b"not a PSFEx file")
-    with pytest.raises(PsfError, match="junk.psf"):
-        PsfexPsf(junk).draw(1.0, 1.0, box, np.eye(2))
-    with pytest.raises(PsfError, match="cannot read"):
-        PsfexPsf(tmp_path / "missing.psf")
+    with pytest.raises(CellCoaddFormatError, match="junk.psf"):  # refused on reading
+        read_psfex(junk)
+    with pytest.raises(CellCoaddFormatError, match="no such PSF model file"):
+        read_psfex(tmp_path / "missing.psf")
+    with pytest.raises(PsfError, match=r"read_psfex\(path\)"):  # models never read files
+        PsfexPsf(psfex_file)  # type: ignore[arg-type]
     with pytest.raises(PsfError, match="includes_pixel"):
         CallablePsf(lambda x, y: galsim.Gaussian(sigma=1.0), includes_pixel=None)  # type: ignore[arg-type]
     with pytest.raises(ExposureError, match="PsfModel, a GSObject"):
@@ -272,12 +275,14 @@ def test_models_pickle_and_refuse_bad_input(psfex_file, tmp_path):
 
 
 def test_bare_forms_become_models():
-    """A GSObject or callable is a pre-pixel GalSimPsf, a galsim.Image an ImagePsf."""
+    """A GSObject is a pre-pixel GalSimPsf, a galsim.Image an ImagePsf; a bare callable
+    must say whether it includes the pixel."""
     from cellcoadd.model.psf import as_psf_model
 
     gaussian = galsim.Gaussian(sigma=0.4)
     assert isinstance(as_psf_model(gaussian), GalSimPsf)
-    assert isinstance(as_psf_model(lambda x, y: gaussian), GalSimPsf)
+    with pytest.raises(PsfError, match="include the pixel"):
+        as_psf_model(lambda x, y: gaussian)
     stamp = gaussian.drawImage(nx=15, ny=15, scale=0.2, dtype=float)
     assert isinstance(as_psf_model(stamp), ImagePsf)
     jac = np.eye(2) * 0.2

@@ -19,8 +19,8 @@ from cellcoadd.pipelines import (
     largest_cell_inner,
     validate_shear,
 )
-from cellcoadd.pipelines.shear_validation import RESULT_KEYS, PairCatalogue, measure_pairs
-from cellcoadd.pipelines.stamp_pairs import measure_pair
+from cellcoadd.pipelines.shear_validation import RESULT_KEYS, measure_pairs
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
@@ -35,9 +35,10 @@ def _workers(n_objects: int) -> int:
     return 2 if n_objects > 8 else 1
 
 
-#: The shared high-S/N run: 8 pairs in the default suite (its bounds hold with room at
-#: that size), 16 with the slow tests; in 2 processes, which
-#: test_results_do_not_depend_on_workers_or_chunks compares with other executors.
+#: The shared high-S/N run: 8 pairs in this process in the default suite (its bounds hold
+#: with room at that size; test_multi_epoch_results_do_not_depend_on_workers checks a
+#: 2-process run there), 16 pairs in 2 processes with the slow tests;
+#: test_results_do_not_depend_on_workers_or_chunks compares it with a thread pool.
 @pytest.fixture(
     scope="module",
     params=[pytest.param(8, id="8-pairs"), pytest.param(16, id="16-pairs", marks=pytest.mark.slow)],
@@ -48,7 +49,7 @@ def coadd_run(request):
         n_objects=request.param,
         snr=HIGH_SNR,
         seed=21,
-        workers=2,
+        workers=_workers(request.param),
         progress=False,
         return_measurements=True,
     )
@@ -74,7 +75,7 @@ def test_coadd_bias_is_small_at_high_snr(coadd_run):
 
 
 def test_results_do_not_depend_on_workers_or_chunks(coadd_run):
-    # another executor, one object per task: the same bits as the 2-process run
+    # another executor, one object per task: the same bits as the first run
     with ThreadPoolExecutor(max_workers=2) as pool:
         again = validate_shear(
             "coadd",

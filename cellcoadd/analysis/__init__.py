@@ -10,6 +10,11 @@
 The corresponding PNG figures are drawn by :mod:`cellcoadd.plots.analysis`.
 """
 
+from cellcoadd.analysis.gaussian_epochs import (
+    continuous_gaussian_ratio,
+    epoch_psf_sigmas,
+    gaussian_templates,
+)
 from cellcoadd.analysis.rejection import (
     PAPER_CELL_SIZES_ARCMIN,
     PAPER_REJECTED_RANGE,
@@ -24,11 +29,8 @@ from cellcoadd.analysis.rejection import (
 from cellcoadd.analysis.snr_loss import (
     SnrLossTable,
     coadd_template,
-    continuous_gaussian_ratio,
-    epoch_psf_sigmas,
     exact_ratio_curve,
     exact_variance_ratio,
-    gaussian_templates,
     lsst_snr_loss,
     monte_carlo_ratio,
     toy_variance_ratio,

@@ -38,11 +38,8 @@ from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError
 __all__ = [
     "SnrLossTable",
     "coadd_template",
-    "continuous_gaussian_ratio",
-    "epoch_psf_sigmas",
     "exact_ratio_curve",
     "exact_variance_ratio",
-    "gaussian_templates",
     "lsst_snr_loss",
     "monte_carlo_ratio",
     "toy_variance_ratio",

@@ -13,7 +13,7 @@ required mask bit named) and gathers what every block of cells shares
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from cellcoadd.builder.exposure_frame import ExposureFrame, exposure_frame
@@ -23,6 +23,7 @@ from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import check_band_name
+from cellcoadd.model.mask_presets import fitting_presets
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource, describe
 
@@ -145,9 +146,21 @@ def check_mask_bits(exposures: Sequence[Exposure | ExposureHeader], config: Buil
             raise InputError(
                 f"exposure (visit={exposure.visit}, detector={exposure.detector}) does not "
                 f"define the mask bits {missing} named in bad_mask_bits (it defines "
-                f"{sorted(exposure.mask_bits.bits)}); map its bit names, or list them in "
-                "BuildConfig.optional_mask_bits"
+                f"{sorted(exposure.mask_bits.bits)}); {_preset_hint(exposure.mask_bits.bits)}"
+                "map its bit names, or list them in BuildConfig.optional_mask_bits"
             )
+
+
+def _preset_hint(defined: Iterable[str]) -> str:
+    """Advice naming the survey presets whose bits an exposure defines, or ``""``."""
+    names = fitting_presets(defined)
+    if not names:
+        return ""
+    name = names[0]
+    return (
+        f"its bits fit the {name!r} preset: bad_mask_bits = {name!r} in the configuration "
+        f"file or BuildConfig.for_survey({name!r}) (= {name.upper()}_BAD_MASK_BITS); else "
+    )
 
 
 def check_unique_inputs(exposures: Sequence[Exposure | ExposureHeader]) -> None:
@@ -171,7 +184,13 @@ def _the_one_band(headers: Sequence[Exposure | ExposureHeader]) -> str:
     if not bands:
         raise InputError("build_patch needs at least one exposure")
     if len(bands) > 1:
-        raise InputError(f"exposures of several bands given ({bands}); build one band at a time")
+        first = {b: next(h for h in headers if h.band == b) for b in bands}
+        named = ", ".join(
+            f"{b!r} (visit={h.visit}, detector={h.detector})" for b, h in first.items()
+        )
+        raise InputError(
+            f"exposures of several bands given: {named}; build one band at a time", value=bands
+        )
     try:
         check_band_name(bands[0])
     except ValueError as err:

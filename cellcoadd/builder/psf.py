@@ -8,6 +8,10 @@ import numpy as np
 from cellcoadd.errors import PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.exposure import Exposure
+from cellcoadd.model.psf import PSF_FLUX_TOLERANCE
+
+#: Smallest fraction of a PSF's unit flux its drawn stamp may hold.
+MIN_STAMP_FLUX = 0.5
 
 
 def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.ndarray:
@@ -28,6 +32,15 @@ def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.nd
         raise PsfError(f"PSF drawn at ({x:.2f}, {y:.2f}) has shape {stamp.shape}, not {box.shape}")
     if not np.all(np.isfinite(stamp)) or stamp.sum() <= 0:
         raise PsfError(f"PSF drawn at ({x:.2f}, {y:.2f}) is non-finite or has no flux")
+    # a unit-flux model that leaves much of its flux outside the coadd's PSF stamp is far
+    # too large for the pixel scale (e.g. a profile in pixels taken as arcsec)
+    total = float(stamp.sum())
+    if not MIN_STAMP_FLUX <= total <= 1.0 + 5 * PSF_FLUX_TOLERANCE:
+        raise PsfError(
+            f"PSF drawn at ({x:.2f}, {y:.2f}) has {total:.4g} of its unit flux in the "
+            f"{box.shape[1]} x {box.shape[0]} pixel stamp: its size or flux does not fit "
+            "the exposure's pixel scale (a profile in pixels rather than arcsec?)"
+        )
     return stamp
 
 

@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from cellcoadd.cli.options import (
+    check_output_not_an_input,
     check_output_path,
     load_skymap,
     parse_pair,
@@ -101,6 +102,8 @@ def build(
     sources: list[Any] = [ExposureFile(path) for path in exposure_files]
     if manifest is not None:
         sources += sources_from_manifest(read_manifest(manifest), Path(manifest).parent)
+    given = [manifest, config_path, skymap_path, *(_source_files(s) for s in sources)]
+    check_output_not_an_input(out, [p for group in given for p in _as_list(group)])
     # headers read once, now: a missing HDU or keyword is found before the build
     inputs = [describe(s) for s in tqdm(sources, desc="headers", unit="file", disable=quiet)]
     coadd = build_patch(
@@ -118,3 +121,16 @@ def build(
     warning = coverage_warning(coadd)
     if warning:
         click.echo(warning, err=True)
+
+
+def _as_list(group: Any) -> list[str]:
+    if group is None:
+        return []
+    return [group] if isinstance(group, str) else list(group)
+
+
+def _source_files(source: Any) -> list[str]:
+    """The files an exposure source reads: image, background, PSF model file."""
+    files = [getattr(source, "path", None), getattr(source, "background", None)]
+    files.append(getattr(getattr(source, "psf", None), "source", None))
+    return [str(f) for f in files if f is not None]

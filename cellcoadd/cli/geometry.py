@@ -12,7 +12,14 @@ from cellcoadd.geometry import SkyMap, SkyMapConfig
 
 
 @click.command()
-@click.option("--rings", "kind", flag_value="rings", default=True, help="Full-sky rings.")
+@click.option("--rings", "kind", flag_value="rings", default=True, help="Our own full-sky rings.")
+@click.option(
+    "--lsst",
+    "kind",
+    flag_value="lsst",
+    help="Rubin's ring sky map (lsst_cells_v1 with the default sizes; the tract size "
+    "follows from them).",
+)
 @click.option(
     "--center", "centers", multiple=True, help="Explicit tract centre RA,DEC in deg (repeat)."
 )
@@ -47,6 +54,7 @@ def skymap(
     \b
     Examples:
       cellcoadd skymap
+      cellcoadd skymap --lsst
       cellcoadd skymap --center 150.1,2.2 --cells-per-patch 4 --out skymap.json
       cellcoadd skymap --layout layout.png --patch 3,4
     """
@@ -59,6 +67,12 @@ def skymap(
     )
     if centers:
         the_map = SkyMap.from_centers([parse_pair(c, float) for c in centers], config)
+    elif kind == "lsst":
+        if config == SkyMapConfig():
+            the_map = SkyMap.named("lsst_cells_v1")
+        else:  # Rubin's algorithm derives the tract size: drop the default patch count
+            sizes = config.model_dump(exclude={"patches_per_tract"})
+            the_map = SkyMap.lsst(SkyMapConfig(**sizes))
     else:
         the_map = SkyMap.rings(config)
     click.echo(the_map.summary())
@@ -89,9 +103,12 @@ def locate(ra: float, dec: float, skymap_path: str | None, as_json: bool) -> Non
     Examples:
       cellcoadd locate 10.0 -30.0
       cellcoadd locate 150.3 2.0 --skymap skymap.json --json
+      cellcoadd locate 53.16 -28.1 --skymap lsst
     """
-    if not (-90.0 <= dec <= 90.0 and np.isfinite(ra)):
-        raise click.BadParameter(f"({ra}, {dec}) is not a sky position in deg")
+    if not 0.0 <= ra <= 360.0:  # NaN fails both checks too
+        raise click.BadParameter(f"{ra} is outside [0, 360] deg", param_hint="RA")
+    if not -90.0 <= dec <= 90.0:
+        raise click.BadParameter(f"{dec} is outside [-90, 90] deg", param_hint="DEC")
     the_map = load_skymap(skymap_path)
     where = the_map.locate(np.array([ra]), np.array([dec]))[0]
     result = {name: where[name].item() for name in where.dtype.names}

@@ -1,7 +1,7 @@
 """The ``cellcoadd`` command group and its error handling.
 
-Errors are reported as one line (``error: ...``) unless ``--debug`` is given, in which
-case the traceback is shown.
+Errors are reported as one line (``error: ...``; usage errors after the command's usage
+line) unless ``--debug`` is given, in which case the traceback is shown.
 """
 
 from __future__ import annotations
@@ -22,7 +22,10 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "locate": ("geometry", "locate", "Print the tract, patch and cell holding sky positions."),
     "simulate": ("simulate", "simulate", "Simulate exposures as in the paper (section 3)."),
     "build": ("build", "build", "Coadd exposure files into the cells of one patch."),
+    "index": ("index", "index_command", "Index input files (headers, footprints) for tract runs."),
+    "run": ("run", "run_command", "Build the patches of a tract on dask (resumable)."),
     "config": ("config", "config_command", "Print the default build configuration, or check one."),
+    "init": ("init", "init_command", "Write a manifest and configuration for survey files."),
     "info": ("storage", "info_command", "Summarise a stored patch coadd (no pixels read)."),
     "show": ("inspect", "show", "Draw one cell of a coadd file."),
     "trim": ("inspect", "trim", "Add unique-area flags (is_primary, ...) to a catalog."),
@@ -76,8 +79,12 @@ def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else list(argv)
     try:
         cli.main(args=args, prog_name="cellcoadd", standalone_mode=False)
-    except click.UsageError as err:
-        err.show()
+    except click.UsageError as err:  # click's usage lines, then our one error line
+        if err.ctx is not None:
+            click.echo(err.ctx.get_usage(), err=True)
+            help_option = err.ctx.help_option_names[0]
+            click.echo(f"Try '{err.ctx.command_path} {help_option}' for help.", err=True)
+        click.echo(f"error: {one_line(err.format_message())}", err=True)
         sys.exit(err.exit_code)
     except click.ClickException as err:
         click.echo(f"error: {one_line(err.format_message())}", err=True)

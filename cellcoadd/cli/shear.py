@@ -8,8 +8,16 @@ import math
 import click
 
 from cellcoadd.cli.options import quiet_option
+from cellcoadd.pipelines.bias_precision import (
+    REFERENCE_SHEAR,
+    SNR_CUT,
+    TARGET_M_ERR,
+    error_scales,
+    pairs_needed,
+)
 
-#: default --snr: high S/N isolates the coadd's own bias (error ~1.5e-3 / sqrt(N) on m1)
+#: default --snr: high S/N isolates the coadd's own bias (its error on m1 is smallest:
+#: :mod:`cellcoadd.pipelines.bias_precision`)
 DEFAULT_SNR = "10000"
 #: default --n-objects: about a minute of CPU, m1 to about +-2e-4 at the default S/N
 DEFAULT_N_OBJECTS = 100
@@ -18,8 +26,6 @@ DEFAULT_N_OBJECTS = 100
 BFD_OVERSAMPLE = 4
 #: default --shear: the paper's g1
 DEFAULT_SHEAR = 0.02
-#: the precision a run aims at: a 3-sigma test of the requirement |m1| < 1e-3
-TARGET_M_ERR = 3e-4
 
 
 def parse_snr(text: str | None) -> float | tuple[float, float] | None:
@@ -206,7 +212,8 @@ def validate_shear(
     and a small shear (--shear 0.001: no third-order terms).
     """
     from cellcoadd.errors import ConfigError
-    from cellcoadd.pipelines.shear_validation import RESULT_KEYS, format_bias_table
+    from cellcoadd.pipelines.bias_table import format_bias_table
+    from cellcoadd.pipelines.shear_validation import RESULT_KEYS
     from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
     from cellcoadd.pipelines.validation_settings import check_method_mode
 
@@ -264,23 +271,26 @@ def validate_shear(
 
 
 def expected_precision(snr_text: str | None, n_objects: int, shear: float = DEFAULT_SHEAR) -> str:
-    """What error on m1 to expect before the run (from docs/validation.md).
+    """What error on m1 to expect before the run (the model of
+    :mod:`cellcoadd.pipelines.bias_precision`).
 
-    The numbers are those measured at the default input shear ``g1 = 0.02``; with another
-    ``shear`` the part of the error due to pixel noise scales as ``0.02 / |shear|``, which
-    the message says.
+    The numbers are those measured at the input shear ``REFERENCE_SHEAR`` (0.02); with
+    another ``shear`` the part of the error due to pixel noise scales as
+    ``0.02 / |shear|``, which the message says.
     """
     snr = parse_snr(snr_text)
-    note = "" if shear == DEFAULT_SHEAR else f" at g1 = {DEFAULT_SHEAR} (noise: x 0.02/|g|)"
+    reference = REFERENCE_SHEAR
+    note = "" if shear == reference else f" at g1 = {reference} (noise: x {reference}/|g|)"
     root = math.sqrt(n_objects)
+    scales = error_scales(None if snr is None else snr if isinstance(snr, float) else snr[0])
+    if scales is None:
+        return f"low S/N: most objects fail the S/N > {SNR_CUT:g} cut; expect a large error on m1"
+    low, high = scales
     if snr is None:
-        return f"expect an error on m1 of order 100 / sqrt(N) (paper noise){note}"
-    low = snr if isinstance(snr, float) else snr[0]
-    if low >= 1000:
-        return f"expect an error on m1 of about {1.5e-3 / root:.1g}{note}"
-    if low >= 10:
-        return f"expect an error on m1 of about {1.2 / root:.1g}-{2.2 / root:.1g}{note}"
-    return "low S/N: most objects fail the S/N > 10 cut; expect a large error on m1"
+        return f"expect an error on m1 of order {low:g} / sqrt(N) (paper noise){note}"
+    if low == high:
+        return f"expect an error on m1 of about {low / root:.1g}{note}"
+    return f"expect an error on m1 of about {low / root:.1g}-{high / root:.1g}{note}"
 
 
 def precision_advice(m1_err: float, n_objects: int, target: float = TARGET_M_ERR) -> str:
@@ -289,7 +299,7 @@ def precision_advice(m1_err: float, n_objects: int, target: float = TARGET_M_ERR
         return "precision: no error estimate (too few objects passed the cuts); run more pairs"
     if m1_err <= target:
         return f"precision: m1 to +-{m1_err:.1g}, enough to test |m1| < 0.001 at 3 sigma"
-    needed = math.ceil(n_objects * (m1_err / target) ** 2)
+    needed = pairs_needed(m1_err, n_objects, target)
     return (
         f"precision: m1 to +-{m1_err:.2g} only; the error falls as 1/sqrt(N): "
         f"--n-objects {needed} would give +-{target:g} (a 3-sigma test of |m1| < 0.001), "

@@ -20,15 +20,18 @@ from cellcoadd.model.schemas import write_schemas
 _ERRORS = (CellCoaddFormatError, OSError, ValueError)
 
 
-def patch_summary(path: str) -> dict[str, Any]:
+def patch_summary(path: str, legacy_zero_point: float | None = None) -> dict[str, Any]:
     """Summary of a patch file without reading pixel data (used by ``cellcoadd info``).
+
+    ``legacy_zero_point``: for an lsst.cell_coadds file in ``legacy`` units that does not
+    record its zero point (see :func:`cellcoadd.io.api.open`).
 
     Keys: file, format, format_version, size_bytes, software_version, tract, patch, band,
     units, zero_point (AB mag of the pixel values), n_noise, psf_size, planes, cells
     (counts), inputs (totals by status), per_cell (one entry per cell: index, kind, used,
     rejected by reason).
     """
-    with api.open(path) as coadd_file:
+    with api.open(path, legacy_zero_point=legacy_zero_point) as coadd_file:
         meta = coadd_file.metadata
         table = coadd_file.read_inputs()
         layout = coadd_file.format_name
@@ -145,11 +148,21 @@ def _summary_text(summary: dict[str, Any], per_cell: bool) -> str:
     return "\n".join(lines)
 
 
+_legacy_zero_point_option = click.option(
+    "--legacy-zero-point",
+    type=float,
+    default=None,
+    help="AB zero point of an lsst.cell_coadds file in 'legacy' units (counts) that does "
+    "not record one (Rubin's are usually 27); refused when the file records another.",
+)
+
+
 @click.command("info")
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--cells", "per_cell", is_flag=True, help="Also list every cell's inputs.")
-def info_command(path: str, as_json: bool, per_cell: bool) -> None:
+@_legacy_zero_point_option
+def info_command(path: str, as_json: bool, per_cell: bool, legacy_zero_point: float | None) -> None:
     """Summarise a stored patch coadd (no pixel data is read).
 
     \b
@@ -159,7 +172,7 @@ def info_command(path: str, as_json: bool, per_cell: bool) -> None:
       cellcoadd info patch.h5 --json > summary.json
     """
     try:
-        summary = patch_summary(path)
+        summary = patch_summary(path, legacy_zero_point)
     except _ERRORS as err:
         raise click.ClickException(str(err)) from err
     if as_json:
@@ -184,12 +197,14 @@ def info_command(path: str, as_json: bool, per_cell: bool) -> None:
     default=None,
     help="Write the LSST lsst.cell_coadds FITS layout (a .fits DESTINATION).",
 )
+@_legacy_zero_point_option
 def convert_command(
     source: str,
     destination: str,
     compression: api.Compression | None,
     overwrite: bool,
     layout: api.Layout | None,
+    legacy_zero_point: float | None,
 ) -> None:
     """Copy a patch coadd into another layout (chosen by the file name), bit for bit.
 
@@ -206,7 +221,12 @@ def convert_command(
     """
     try:
         written = api.convert(
-            source, destination, compression=compression, overwrite=overwrite, layout=layout
+            source,
+            destination,
+            compression=compression,
+            overwrite=overwrite,
+            layout=layout,
+            legacy_zero_point=legacy_zero_point,
         )
     except FileExistsError as err:
         raise click.ClickException(f"{destination} exists; use --overwrite to replace it") from err

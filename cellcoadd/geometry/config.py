@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 
 from cellcoadd.errors import ConfigError
+
+#: Fields added after format 1.2; left out of the JSON when unset, so that files without
+#: them are written byte for byte as before and older readers still accept them.
+_OPTIONAL_FIELDS = ("tangent_pixel", "name")
 
 
 class SkyMapConfig(BaseModel):
@@ -33,7 +39,15 @@ class SkyMapConfig(BaseModel):
         the two polar caps.
     tract_overlap : float
         Minimum margin, deg, by which a ring tract's pixel box must extend beyond its inner
-        region on the sky (so objects near tract boundaries are fully imaged).
+        region on the sky (so objects near tract boundaries are fully imaged). In Rubin's
+        ring sky map (``SkyMap.lsst``) the margin added to half a ring's width.
+    tangent_pixel : int or None
+        0-based tract pixel, in x and in y, of every tract's tangent point; None for the
+        centre of the tract box, ``(tract_pixels - 1) / 2``. Rubin's ring sky map puts it
+        on a pixel centre (14999 in ``lsst_cells_v1``).
+    name : str or None
+        Name of the sky map this geometry belongs to, as Rubin's data butler knows it
+        (e.g. ``"lsst_cells_v1"``); None for our own sky maps.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -46,6 +60,18 @@ class SkyMapConfig(BaseModel):
     patches_per_tract: int = Field(10, gt=0)
     n_rings: int = Field(120, gt=0)
     tract_overlap: float = Field(1.0 / 60.0, ge=0, description="deg")
+    tangent_pixel: int | None = Field(
+        None, ge=0, description="0-based tract pixel of the tangent point (None: box centre)"
+    )
+    name: str | None = Field(None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
+
+    @model_serializer(mode="wrap")
+    def _drop_unset_optional(self, handler: Any) -> dict[str, Any]:
+        data = handler(self)
+        for key in _OPTIONAL_FIELDS:
+            if data.get(key) is None:
+                data.pop(key, None)
+        return data
 
     @model_validator(mode="after")
     def _check_consistency(self) -> SkyMapConfig:
@@ -61,6 +87,11 @@ class SkyMapConfig(BaseModel):
                 f"patch_border_cells ({self.patch_border_cells}) must not exceed "
                 f"cells_per_patch ({self.cells_per_patch})"
             )
+        if self.tangent_pixel is not None and self.tangent_pixel >= self.tract_pixels:
+            raise ConfigError(
+                f"tangent_pixel {self.tangent_pixel} is outside the tract's "
+                f"{self.tract_pixels} pixels"
+            )
         if self.tract_pixels > 2_000_000:
             raise ConfigError(
                 f"a tract of {self.tract_pixels} pixels on a side is implausibly large",
@@ -68,6 +99,13 @@ class SkyMapConfig(BaseModel):
                 allowed=(1, 2_000_000),
             )
         return self
+
+    @property
+    def tangent_center(self) -> float:
+        """0-based tract pixel (x = y) of the tangent point."""
+        if self.tangent_pixel is None:
+            return (self.tract_pixels - 1) / 2.0
+        return float(self.tangent_pixel)
 
     @property
     def cell_outer(self) -> int:

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import Literal
+from typing import Any, Literal, overload
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
 
 from cellcoadd.errors import CellCoaddIndexError, CellCoaddValueError, ConfigError, GeometryError
 from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.geometry.lsst_rings import LsstRingRegion, LsstRings, lsst_tract_box
 from cellcoadd.geometry.regions import (
     NearestCenterRegion,
     RingRegion,
@@ -32,14 +33,39 @@ LOCATION_DTYPE = np.dtype(
 )
 
 
+#: Rubin's cell sky maps by their butler names: the ``SkyMapConfig`` overrides of each
+#: (Rubin's ring sky map with the ``cells`` tract builder; sources in docs/geometry.md).
+LSST_SKYMAPS: dict[str, dict[str, object]] = {
+    "lsst_cells_v1": {},
+    "lsst_cells_v2": {"cell_border": 0},
+}
+
+#: Short names accepted wherever a sky map is named.
+SKYMAP_ALIASES = {"lsst": "lsst_cells_v1"}
+
+
 class SkyMapSpec(BaseModel):
-    """Serialisable definition of a sky map (what ``skymap.json`` holds)."""
+    """Serialisable definition of a sky map (what ``skymap.json`` holds).
+
+    ``kind`` is ``"centers"`` (explicit tract centres), ``"rings"`` (our own ring
+    tessellation, :meth:`SkyMap.rings`) or ``"lsst"`` (Rubin's ring sky map,
+    :meth:`SkyMap.lsst`, with its tracts' RA origin ``ra_start`` in deg).
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["centers", "rings"]
+    kind: Literal["centers", "rings", "lsst"]
     config: SkyMapConfig
     centers: tuple[tuple[float, float], ...] = ()
+    ra_start: float = Field(0.0, ge=0.0, lt=360.0, description="deg, lsst kind only")
+
+    @model_serializer(mode="wrap")
+    def _lsst_fields_only_for_lsst(self, handler: Any) -> dict[str, Any]:
+        # other kinds keep the JSON they always had
+        data = handler(self)
+        if self.kind != "lsst":
+            data.pop("ra_start", None)
+        return data
 
     @field_validator("centers")
     @classmethod
@@ -50,6 +76,32 @@ class SkyMapSpec(BaseModel):
                     f"tract centre ({ra}, {dec}) is not a valid (ra, dec) in deg", value=(ra, dec)
                 )
         return tuple((float(ra) % 360.0, float(dec)) for ra, dec in centers)
+
+
+class _LsstTracts(Sequence[Tract]):
+    """The tracts of Rubin's ring sky map, made on first use (18,938 of them by default:
+    a lookup or a file read needs only a few)."""
+
+    def __init__(self, layout: LsstRings, config: SkyMapConfig) -> None:
+        self._layout, self._config = layout, config
+        self._made: dict[int, Tract] = {}
+
+    def __len__(self) -> int:
+        return self._layout.n_tracts
+
+    @overload
+    def __getitem__(self, index: int) -> Tract: ...
+    @overload
+    def __getitem__(self, index: slice) -> Sequence[Tract]: ...
+    def __getitem__(self, index: int | slice) -> Tract | Sequence[Tract]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        tract_id = int(index)
+        if tract_id not in self._made:
+            region = LsstRingRegion(self._layout, tract_id)
+            center = self._layout.center(tract_id)
+            self._made[tract_id] = Tract(tract_id, center, self._config, region)
+        return self._made[tract_id]
 
 
 class SkyMap:
@@ -63,6 +115,7 @@ class SkyMap:
         self._tracts = tracts
         # per ring: (first tract id, dec_min, dec_max, n_ra); caps are rings with n_ra == 1
         self._rings = rings
+        self._lsst: LsstRings | None = None
 
     @property
     def config(self) -> SkyMapConfig:
@@ -93,8 +146,73 @@ class SkyMap:
         return cls(spec, tracts)
 
     @classmethod
+    def lsst(cls, config: SkyMapConfig | None = None, ra_start: float = 0.0) -> SkyMap:
+        """Rubin's ring sky map: the tracts, ids, WCSs, patches and cells Rubin uses.
+
+        The same tract ids, tract centres (tangent points), tract boxes and WCSs as LSST's
+        ``RingsSkyMap`` (version 1) with its ``cells`` tract builder, so that the same
+        position falls in the same tract, patch and cell. With the default configuration
+        this is ``lsst_cells_v1`` (18,938 tracts of 30,000 px, 10 x 10 patches of
+        20 x 20 cells of 150 + 2 x 50 px at 0.2 arcsec/px); see :meth:`named`.
+
+        Parameters
+        ----------
+        config : SkyMapConfig, optional
+            ``n_rings``, ``tract_overlap`` (deg), ``pixel_scale`` and the cell and patch
+            sizes. The number of patches per tract and the tangent pixel follow from
+            them (as in Rubin's), so they are filled in; giving a different
+            ``patches_per_tract`` or ``tangent_pixel`` explicitly raises ``ConfigError``.
+        ra_start : float
+            RA (deg) of the first tract of every ring (Rubin's ``raStart``).
+
+        Notes
+        -----
+        :meth:`rings` is a different tessellation (tract centres at half-slices, one
+        tract fewer per ring where the count is an exact integer, caps at RA 180, tangent
+        point between pixels); it is kept for files already written. The derivation is
+        in ``docs/geometry.md``.
+        """
+        config = config or SkyMapConfig()
+        if not (math.isfinite(ra_start) and 0.0 <= ra_start < 360.0):
+            raise ConfigError(f"ra_start must be in [0, 360) deg, got {ra_start}")
+        n_patches, tangent = lsst_tract_box(
+            config.n_rings, config.tract_overlap, config.pixel_scale, config.patch_inner
+        )
+        derived = {"patches_per_tract": n_patches, "tangent_pixel": tangent}
+        for key, value in derived.items():
+            given = getattr(config, key)
+            if key in config.model_fields_set and given is not None and given != value:
+                raise ConfigError(
+                    f"{key}={given} disagrees with Rubin's ring sky map, whose tracts have "
+                    f"{key}={value} for n_rings={config.n_rings}, tract_overlap="
+                    f"{config.tract_overlap} deg, pixel_scale={config.pixel_scale}, "
+                    f"patch inner {config.patch_inner} px: leave it out"
+                )
+        config = SkyMapConfig.model_validate({**config.model_dump(), **derived})
+        layout = LsstRings(config.n_rings, ra_start)
+        spec = SkyMapSpec(kind="lsst", config=config, ra_start=ra_start)
+        skymap = cls(spec, _LsstTracts(layout, config))  # type: ignore[arg-type]
+        skymap._lsst = layout
+        return skymap
+
+    @classmethod
+    def named(cls, name: str) -> SkyMap:
+        """One of Rubin's sky maps by its butler name (``lsst_cells_v1``, ``lsst_cells_v2``;
+        ``lsst`` is ``lsst_cells_v1``). Raises ``ConfigError`` for other names."""
+        full = SKYMAP_ALIASES.get(name, name)
+        if full not in LSST_SKYMAPS:
+            known = ", ".join(sorted([*LSST_SKYMAPS, *SKYMAP_ALIASES]))
+            raise ConfigError(f"unknown sky map name {name!r}; known: {known}")
+        return cls.lsst(SkyMapConfig.model_validate({"name": full, **LSST_SKYMAPS[full]}))
+
+    @classmethod
     def rings(cls, config: SkyMapConfig | None = None) -> SkyMap:
-        """Full-sky tessellation: two polar caps and ``n_rings`` declination rings.
+        """Our own full-sky tessellation: two polar caps and ``n_rings`` declination rings.
+
+        Not Rubin's ring sky map (use :meth:`lsst` for that): kept for files already
+        written. With the defaults it has 18,936 tracts (Rubin's: 18,938), tract centres
+        at the middle of each RA slice, caps centred at RA 180 and the tangent point
+        between pixels, so no tract id, pixel or cell boundary matches Rubin's.
 
         Ring boundaries are spaced ``180 / (n_rings + 1)`` deg apart, the caps have half
         that radius; each ring is split into equal half-open RA ranges no wider on the sky
@@ -178,6 +296,8 @@ class SkyMap:
         spec = SkyMapSpec.model_validate_json(text)
         if spec.kind == "rings":
             return cls.rings(spec.config)
+        if spec.kind == "lsst":
+            return cls.lsst(spec.config, spec.ra_start)
         return cls.from_centers(spec.centers, spec.config)
 
     # -- container protocol -------------------------------------------------------
@@ -204,6 +324,8 @@ class SkyMap:
         """Id of the tract owning each position (deg); -1 where no tract does."""
         ra = np.mod(np.atleast_1d(np.asarray(ra, dtype=float)), 360.0)
         dec = np.atleast_1d(np.asarray(dec, dtype=float))
+        if self._lsst is not None:
+            return self._lsst.find_tract(ra, dec)
         if self._rings is None:
             return nearest_center(self.spec.centers, ra, dec)
         ring_starts = np.array([r[0] for r in self._rings])
@@ -257,7 +379,9 @@ class SkyMap:
         cfg = self.config
         arcmin = cfg.pixel_scale / 60.0
         lines = [
-            f"sky map: {self.spec.kind}, {len(self)} tract(s)",
+            f"sky map: {self.spec.kind}"
+            + (f" ({cfg.name})" if cfg.name else "")
+            + f", {len(self)} tract(s)",
             f"pixel scale: {cfg.pixel_scale} arcsec/pixel",
             f"tract: {cfg.tract_pixels} px = {cfg.tract_size_deg:.3f} deg, "
             f"{cfg.patches_per_tract} x {cfg.patches_per_tract} patches",

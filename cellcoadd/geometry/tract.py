@@ -28,14 +28,15 @@ from cellcoadd.geometry.wcs_utils import canonical_wcs, gnomonic_radec, gnomonic
 def tract_wcs(center: tuple[float, float], config: SkyMapConfig) -> WCS:
     """Gnomonic (TAN) WCS of a tract centred on ``center`` (deg), North up, East left.
 
-    Tract pixel ``(0, 0)`` is the first pixel; the tangent point is the centre of the
-    tract box, ``((n - 1) / 2, (n - 1) / 2)`` in 0-based pixels.
+    Tract pixel ``(0, 0)`` is the first pixel; the tangent point is at 0-based pixel
+    ``config.tangent_center`` in x and y: by default the centre of the tract box,
+    ``(n - 1) / 2``; Rubin's ring sky map puts it on a pixel centre.
     """
-    n = config.tract_pixels
+    ref = config.tangent_center
     wcs = WCS(naxis=2)
     wcs.wcs.ctype = ["RA---TAN", "DEC--TAN"]
     wcs.wcs.crval = [center[0] % 360.0, center[1]]
-    wcs.wcs.crpix = [(n - 1) / 2.0 + 1.0, (n - 1) / 2.0 + 1.0]  # FITS is 1-based
+    wcs.wcs.crpix = [ref + 1.0, ref + 1.0]  # FITS is 1-based
     scale = config.pixel_scale / 3600.0
     wcs.wcs.cd = [[-scale, 0.0], [0.0, scale]]
     wcs.wcs.cunit = ["deg", "deg"]
@@ -239,8 +240,8 @@ class Tract:
 
     @property
     def _center_pixel(self) -> float:
-        # tangent point at the centre of the box, as in :func:`tract_wcs`
-        return (self.config.tract_pixels - 1) / 2.0
+        # the tangent point, as in :func:`tract_wcs`
+        return self.config.tangent_center
 
     def sky_to_pixel(self, ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tract pixel ``(x, y)`` (0-based) of ``(ra, dec)`` in deg; vectorised.

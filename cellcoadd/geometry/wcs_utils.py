@@ -78,6 +78,11 @@ def _tangent_basis(ra0: float, dec0: float) -> tuple[np.ndarray, np.ndarray, np.
     center = np.array([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)])
     east = np.array([-np.sin(a), np.cos(a), 0.0])
     north = np.array([-np.sin(d) * np.cos(a), -np.sin(d) * np.sin(a), np.cos(d)])
+    if dec0 == 90.0:
+        # A TAN WCS whose tangent point is the north pole defaults to LONPOLE = 0 (FITS
+        # paper II), not 180 as everywhere else: its plane is turned by 180 deg from the
+        # limit taken from below. Follow it, so that this agrees with the WCS there.
+        return center, -east, -north
     return center, east, north
 
 

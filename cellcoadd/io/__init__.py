@@ -12,11 +12,13 @@ from cellcoadd.io.exposures.manifest_io import (
 from cellcoadd.io.exposures.mef_layout import (
     DES_BAD_MASK_BITS,
     DES_LAYOUT,
+    DES_MASK_VALUES,
     LSST_BAD_MASK_BITS,
     LSST_LAYOUT,
     MefLayout,
     ZeroPointKey,
 )
+from cellcoadd.io.exposures.psf_files import read_piff, read_psf_file, read_psfex
 from cellcoadd.io.exposures.survey_readers import (
     MefExposureFile,
     read_des_exposure,
@@ -28,6 +30,7 @@ __all__ = [
     "CellCoaddFormatError",
     "DES_BAD_MASK_BITS",
     "DES_LAYOUT",
+    "DES_MASK_VALUES",
     "ExposureFile",
     "LSST_BAD_MASK_BITS",
     "LSST_LAYOUT",
@@ -46,6 +49,9 @@ __all__ = [
     "read_lsst_exposure",
     "read_manifest",
     "read_mef_exposure",
+    "read_piff",
+    "read_psf_file",
+    "read_psfex",
     "sources_from_manifest",
     "write",
     "write_exposure",

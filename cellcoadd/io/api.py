@@ -31,15 +31,20 @@ from cellcoadd.errors import (
     CellCoaddIncompatibleValuesError,
     CellCoaddTypeError,
     CellCoaddValueError,
+    ConfigError,
 )
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._files.read_checks import reading_errors
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import stabilise_fits_checksums
 from cellcoadd.io.coadd.coadd_file import CoaddFile
 from cellcoadd.io.coadd.fits_format import FitsCoaddFile, check_fits_path, write_fits
 from cellcoadd.io.coadd.hdf5_format import Hdf5CoaddFile, write_hdf5
+from cellcoadd.io.foreign.cell_coadds_layout import (
+    check_writable as check_cell_coadds_writable,
+)
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
 from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
 from cellcoadd.model import planes
@@ -148,6 +153,7 @@ def write(
     writer = _WRITERS[file_kind]
     if layout is not None:
         writer = _foreign_writer(target, file_kind, layout, compress)
+        check_cell_coadds_writable(patch_coadd, str(target))
 
     def prepare(temporary: Path) -> None:
         if file_kind == "fits":
@@ -209,7 +215,12 @@ def _estimated_size(patch_coadd: PatchCoadd) -> int:
     return total
 
 
-def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
+def open(
+    path: str | os.PathLike[str],
+    *,
+    verify: bool = True,
+    legacy_zero_point: float | None = None,
+) -> CoaddFile:
     """Open a patch file lazily: ``.metadata``, ``.cell_indices``, ``.read_cell(index)``,
     ``.read_inputs()``; use as a context manager or call ``.close()``.
 
@@ -218,6 +229,10 @@ def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
     verify : bool
         Verify checksums of what is read (FITS CHECKSUM/DATASUM, HDF5 metadata SHA-256;
         HDF5 Fletcher-32 checksums are always verified by the library).
+    legacy_zero_point : float, optional
+        For ``lsst.cell_coadds`` files in ``legacy`` units (counts) that do not record
+        their zero point: the AB zero point to read them at (they are refused without
+        it). Refused for other files.
 
     Raises
     ------
@@ -231,9 +246,12 @@ def open(path: str | os.PathLike[str], *, verify: bool = True) -> CoaddFile:
     """
     name = os.fspath(path)
     layout = file_format(name)
+    gate_read(name, what="coadd file", fits=layout == "fits")
     with _fresh_cfitsio_messages(layout):
         if layout == "fits" and is_cell_coadds_file(name):  # the LSST layout, by its headers
-            return CellCoaddsFile(name, verify=verify)
+            return CellCoaddsFile(name, verify=verify, legacy_zero_point=legacy_zero_point)
+        if legacy_zero_point is not None:
+            raise ConfigError(f"{name}: legacy_zero_point applies to lsst.cell_coadds files only")
         return _READERS[layout](name, verify=verify)
 
 
@@ -255,9 +273,17 @@ def _fresh_cfitsio_messages(layout: FileFormat) -> Iterator[None]:
         clear_cfitsio_messages()
 
 
-def read(path: str | os.PathLike[str], *, verify: bool = True) -> PatchCoadd:
-    """Read a whole patch coadd (see :func:`open` for ``verify`` and errors)."""
-    with _fresh_cfitsio_messages(file_format(path)), open(path, verify=verify) as coadd_file:
+def read(
+    path: str | os.PathLike[str],
+    *,
+    verify: bool = True,
+    legacy_zero_point: float | None = None,
+) -> PatchCoadd:
+    """Read a whole patch coadd (see :func:`open` for the options and errors)."""
+    with (
+        _fresh_cfitsio_messages(file_format(path)),
+        open(path, verify=verify, legacy_zero_point=legacy_zero_point) as coadd_file,
+    ):
         cells = {index: coadd_file.read_cell(index) for index in coadd_file.cell_indices}
         with reading_errors(coadd_file.path, "assembling the patch"):
             return PatchCoadd(coadd_file.metadata, cells)
@@ -278,15 +304,20 @@ def convert(
     compression: Compression | None = None,
     overwrite: bool = False,
     layout: Layout | None = None,
+    legacy_zero_point: float | None = None,
 ) -> Path:
     """Copy a patch file into another layout or compression, losslessly.
 
     ``layout="cell_coadds"`` writes the LSST ``lsst.cell_coadds`` layout (see :func:`write`);
-    such a source is recognised by its headers.
+    such a source is recognised by its headers (``legacy_zero_point``: see :func:`open`).
     """
     file_format(destination)  # fail on a bad name before reading anything
     if Path(os.fspath(destination)).exists() and not overwrite:
         raise exists_error(destination)
     return write(
-        read(source), destination, compression=compression, overwrite=overwrite, layout=layout
+        read(source, legacy_zero_point=legacy_zero_point),
+        destination,
+        compression=compression,
+        overwrite=overwrite,
+        layout=layout,
     )

@@ -7,6 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from cellcoadd.errors import ConfigError
+from cellcoadd.model.mask_presets import MASK_PRESETS
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
@@ -30,11 +31,12 @@ class BuildConfig(BaseModel):
     max_mask_fraction : float
         An exposure whose masked fraction inside the cell's outer box exceeds this is
         rejected for the cell (reason ``"masked_fraction"``).
-    bad_mask_bits : list of str
+    bad_mask_bits : list of str, or "des" or "lsst"
         Names of the exposure mask bits that count as bad: those pixels are interpolated
         from their good neighbours before the warp (image, noise and variance alike) and
         counted in ``mfrac``. Every exposure must define every name here, unless the name
-        is also in ``optional_mask_bits``.
+        is also in ``optional_mask_bits``. A survey's name gives its preset
+        (:data:`~cellcoadd.model.mask_presets.MASK_PRESETS`), stored as the list of names.
     optional_mask_bits : list of str
         Names in ``bad_mask_bits`` that an exposure may leave undefined (then none of its
         pixels has that bit).
@@ -109,6 +111,37 @@ class BuildConfig(BaseModel):
     def required_mask_bits(self) -> tuple[str, ...]:
         """The names of ``bad_mask_bits`` every exposure must define."""
         return tuple(n for n in self.bad_mask_bits if n not in self.optional_mask_bits)
+
+    @classmethod
+    def for_survey(cls, survey: str, **fields: Any) -> BuildConfig:
+        """The configuration for a survey's exposure files: its ``bad_mask_bits`` preset.
+
+        Parameters
+        ----------
+        survey : "des" or "lsst"
+            The preset (:data:`~cellcoadd.model.mask_presets.MASK_PRESETS`).
+        **fields
+            Any other field.
+
+        Examples
+        --------
+        >>> BuildConfig.for_survey("lsst", n_noise=1).bad_mask_bits
+        ('BAD', 'SAT', 'CR', 'EDGE', 'NO_DATA')
+        """
+        return cls(bad_mask_bits=survey, **fields)
+
+    @field_validator("bad_mask_bits", mode="before")
+    @classmethod
+    def _preset(cls, value: Any) -> Any:
+        if isinstance(value, str):  # a survey preset; one bit name is a list of one
+            preset = MASK_PRESETS.get(value.strip().lower())
+            if preset is None:
+                raise ConfigError(
+                    f"unknown mask-bit preset {value!r}: give one of {sorted(MASK_PRESETS)} "
+                    "or a list of bit names"
+                )
+            return preset
+        return value
 
     @field_validator("psf_size")
     @classmethod

@@ -25,6 +25,7 @@ rejected inputs are still listed. :meth:`CellCoadd.empty` builds one.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
@@ -33,6 +34,7 @@ from astropy.wcs import WCS
 
 from cellcoadd.errors import InvalidCoaddError
 from cellcoadd.geometry.box import Box
+from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.planes import grid_plane_names, plane_names
@@ -80,6 +82,11 @@ class CellCoadd:
         Inner and outer boxes in tract pixels; the inner box lies inside the outer one.
     wcs : astropy.wcs.WCS
         Celestial WCS of the outer-box arrays (see the module docstring).
+    common : CellCommon, optional
+        What the cell shares with its patch (unit, zero point, band, mask-bit names, patch
+        and sky map). Set on every cell of a :class:`~cellcoadd.model.patch_coadd.PatchCoadd`
+        and on a cell read alone; None for a cell made on its own. Not part of
+        :meth:`equals` (it describes the patch, not the cell's contents).
 
     Raises
     ------
@@ -102,6 +109,7 @@ class CellCoadd:
         inner_bbox: Box,
         outer_bbox: Box,
         wcs: WCS,
+        common: CellCommon | None = None,
     ) -> None:
         self.tract = _as_int("tract", tract)
         self.index = _as_index(index)
@@ -147,6 +155,9 @@ class CellCoadd:
         if len(set(keys)) != len(keys):
             raise InvalidCoaddError(f"{name}: inputs list a (visit, detector) more than once")
         self.wcs = _check_wcs(name, wcs)
+        self.common: CellCommon | None = None
+        if common is not None:
+            self.attach(common)
         if self.is_empty:
             if not np.isnan(self.image).all():
                 raise InvalidCoaddError(
@@ -170,11 +181,15 @@ class CellCoadd:
         psf_size: int,
         inputs: Iterable[InputRecord | dict[str, Any]] = (),
         mask_bits: MaskBits | None = None,
+        common: CellCommon | None = None,
     ) -> CellCoadd:
         """A cell with no used input: NaN planes and PSF, ``NO_DATA`` everywhere in the mask.
 
-        ``inputs`` lists the rejected inputs (none may be used).
+        ``inputs`` lists the rejected inputs (none may be used); ``mask_bits`` default to
+        ``common``'s.
         """
+        if mask_bits is None and common is not None:
+            mask_bits = common.mask_bits
         bits = mask_bits if mask_bits is not None else MaskBits()
         shape = outer_bbox.shape
         return cls(
@@ -190,7 +205,21 @@ class CellCoadd:
             inner_bbox=inner_bbox,
             outer_bbox=outer_bbox,
             wcs=wcs,
+            common=common,
         )
+
+    def attach(self, common: CellCommon) -> None:
+        """Give the cell its patch's common components (its tract must match)."""
+        if not isinstance(common, CellCommon):
+            raise InvalidCoaddError(
+                f"cell {self.index}: common must be a CellCommon, got {type(common).__name__}"
+            )
+        if common.tract != self.tract:
+            raise InvalidCoaddError(
+                f"cell {self.index} is in tract {self.tract}, its common components say "
+                f"{common.tract}"
+            )
+        self.common = common
 
     @property
     def n_used(self) -> int:
@@ -223,7 +252,7 @@ class CellCoadd:
 
     def to_nddata(
         self,
-        unit: Any,
+        unit: Any = None,
         *,
         mask_bits: MaskBits | None = None,
         bad_bits: Iterable[str] | None = None,
@@ -234,19 +263,20 @@ class CellCoadd:
 
         Parameters
         ----------
-        unit : str or astropy.units.Unit
-            Unit of the image: the patch's ``metadata.units`` (``"nJy"`` or ``"count"``);
-            :meth:`PatchCoadd.to_nddata <cellcoadd.model.patch_coadd.PatchCoadd.to_nddata>`
-            fills it in.
+        unit : str or astropy.units.Unit, optional
+            Unit of the image; by default the cell's own (:attr:`common`, which every cell
+            of a patch and every cell read from a file has). A cell without common
+            components needs it.
         mask_bits : MaskBits, optional
-            Names of the mask bits (default :class:`MaskBits`); they go into ``meta`` as
-            ``MP_<NAME> = bit`` and name ``bad_bits``.
+            Names of the mask bits (default: the cell's own, else :class:`MaskBits`); they
+            go into ``meta`` as ``MP_<NAME> = bit`` and name ``bad_bits``.
         bad_bits : iterable of str, optional
             Bits that make a pixel masked; default: any bit.
         inner : bool
             Cut to the inner box (default: the outer box, like the planes).
         zero_point : float, optional
-            AB zero point of counts, written to ``meta["MAGZERO"]`` (not for nJy).
+            AB zero point of counts, written to ``meta["MAGZERO"]`` (not for nJy); by
+            default the cell's own.
 
         Returns
         -------
@@ -257,9 +287,15 @@ class CellCoadd:
             (unit squared); ``mask``: boolean, **True where a pixel is flagged** (astropy's
             convention: it has any of ``bad_bits``); the integer bit mask stays in
             :attr:`mask`. ``meta`` (an ``astropy.io.fits.Header``): ``TRACT``, ``CELL_X``,
-            ``CELL_Y``, ``MP_<NAME> = bit`` (upper-case ASCII names) and, for counts,
-            ``MAGZERO``. Noise realizations, ``mfrac`` and the PSF are not
-            included.
+            ``CELL_Y``, ``MP_<NAME> = bit`` (upper-case ASCII names), for counts
+            ``MAGZERO``, and from the common components ``PATCH_X``, ``PATCH_Y``,
+            ``FILTER`` (JSON-escaped to ASCII) and ``SKYMAP``. Noise realizations, ``mfrac``
+            and the PSF are not included.
+
+        Raises
+        ------
+        InvalidCoaddError
+            No ``unit`` given and the cell has no common components.
         """
         import astropy.units as u
         from astropy.io import fits
@@ -267,7 +303,19 @@ class CellCoadd:
 
         from cellcoadd.geometry.wcs_utils import shifted_wcs
 
+        common = self.common
+        if unit is None:
+            if common is None:
+                raise InvalidCoaddError(
+                    f"cell {self.index} has no unit of its own (it was not read from a file "
+                    "or taken from a patch): pass unit="
+                )
+            unit = common.units
         unit = u.Unit(unit)
+        if zero_point is None and common is not None and unit == common.unit:
+            zero_point = common.zero_point
+        if mask_bits is None and common is not None:
+            mask_bits = common.mask_bits
         bits = mask_bits if mask_bits is not None else MaskBits()
         if inner:
             planes = self.inner
@@ -289,6 +337,11 @@ class CellCoadd:
             meta["MAGZERO"] = (float(zero_point), "[mag] AB zero point of the pixel values")
         for key, bit, comment in mask_plane_cards(bits.bits):
             meta[f"HIERARCH {key}" if len(key) > 8 else key] = (bit, comment)
+        if common is not None:
+            meta["PATCH_X"], meta["PATCH_Y"] = common.patch
+            meta["FILTER"] = json.dumps(common.band, ensure_ascii=True)[1:-1]
+            if common.skymap:
+                meta["SKYMAP"] = common.skymap
         return CCDData(
             np.array(image),
             unit=unit,

@@ -5,15 +5,19 @@ PSF convention
 ``psf`` is a :class:`~cellcoadd.model.psf.PsfModel` (``GalSimPsf``, ``ImagePsf``,
 ``CallablePsf``, ``PsfexPsf``, ``PiffPsf``) that draws the image of a point source,
 pixel response included, at any exposure position; see :mod:`cellcoadd.model.psf`. For
-convenience three bare forms are accepted and wrapped (:attr:`Exposure.psf_model`):
+convenience bare forms are accepted and wrapped (:attr:`Exposure.psf_model`):
 
 * a ``galsim.GSObject``: constant over the exposure, *before* the pixel response, in
   arcsec on the local tangent plane (``u`` West, ``v`` North);
-* a callable ``(x, y) -> galsim.GSObject`` (0-based exposure pixels), also *before* the
-  pixel (for a profile that includes it, such as PSFEx's or Piff's, use
-  ``CallablePsf(func, includes_pixel=True)``);
+* a :class:`~cellcoadd.model.psf_profiles.VaryingPsf` or
+  :class:`~cellcoadd.model.psf_profiles.GridPsf` (callables ``(x, y) -> galsim.GSObject``
+  of 0-based exposure pixels), also *before* the pixel. Any other callable must say
+  whether its profiles include the pixel: ``GalSimPsf(func)`` (without) or
+  ``CallablePsf(func, includes_pixel=True)`` (PSFEx's, Piff's); a bare one is refused;
 * a ``galsim.Image``: an odd square stamp *already including* the pixel response,
   sampled on the exposure pixel grid and centred on its central pixel.
+
+Profiles and stamps must have unit flux (:data:`~cellcoadd.model.psf.PSF_FLUX_TOLERANCE`).
 """
 
 from __future__ import annotations

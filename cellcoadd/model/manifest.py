@@ -13,6 +13,7 @@ A manifest is a TOML, JSON or CSV file with one entry per exposure (see
     path = "calexp_2024031500123_R22_S11.fits"
     layout = "lsst"
     psf = "calexp_2024031500123_R22_S11.piff"
+    trust_psf = true  # a Piff file holds pickled objects: loaded only when trusted
     zero_point = 31.4
 
 Relative paths are relative to the manifest's directory.
@@ -42,8 +43,11 @@ class ManifestEntry(BaseModel):
     layout : "cellcoadd", "lsst", "des" or dict
         How the file is laid out (a dict: a generic multi-extension layout).
     psf : str, optional
-        PSF model file: ``.psf`` is PSFEx, anything else Piff. Required for ``lsst`` and
+        PSF model file, PSFEx or Piff (recognised by content). Required for ``lsst`` and
         ``des``; cellcoadd's own files hold their PSF.
+    trust_psf : bool
+        Allow a Piff model (in ``psf``, or stored in a cellcoadd exposure file): Piff
+        files hold pickled objects, which run code when loaded. Only for files you trust.
     background : str, optional
         Background image file to subtract (DES ``_bkg.fits.fz``).
     zero_point : float, optional
@@ -64,6 +68,7 @@ class ManifestEntry(BaseModel):
     visit: int | None = None
     detector: int | None = None
     band: str | None = None
+    trust_psf: bool = False
 
     @field_validator("psf", "background", "band")
     @classmethod

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from collections.abc import Iterable, Iterator, Mapping
@@ -10,7 +11,14 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from astropy.wcs import WCS
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from cellcoadd._version import __version__
 from cellcoadd.errors import (
@@ -28,8 +36,10 @@ from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
+from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import check_band_name
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.observations import Observations
 from cellcoadd.model.units import (
     NJY_ZERO_POINT,
     PixelUnit,
@@ -45,7 +55,10 @@ from cellcoadd.model.units import (
 #: 1.1: FITS ``DATACRC`` keywords. 1.2: ``units`` is an astropy unit string (``"nJy"`` or
 #: ``"count"``) and ``zero_point`` a field (older files' free text is mapped on reading),
 #: ``BuildConfig.units``; ``BUNIT``/``MAGZERO``/``MP_*`` keywords and attributes.
-FORMAT_VERSION = "1.2"
+#: 1.3: optional ``observations`` and ``skymap_config.name``/``tangent_pixel`` (Rubin's
+#: sky map); compressed FITS float planes as floats with ``CCNFBITS``; WCS cards on every
+#: FITS pixel-plane HDU.
+FORMAT_VERSION = "1.3"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)
@@ -135,6 +148,9 @@ class PatchMetadata(BaseModel):
         cellcoadd version that built the coadd.
     format_version : str
         ``"MAJOR.MINOR"`` of the data model (:data:`FORMAT_VERSION` when created).
+    observations : Observations or None
+        Instrument, and physical filter and observing day of each visit, when known (from
+        a Rubin coadd); left out of the stored JSON when None.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -158,6 +174,15 @@ class PatchMetadata(BaseModel):
     build_config: BuildConfig = Field(default_factory=BuildConfig)
     software_version: str = __version__
     format_version: str = FORMAT_VERSION
+    observations: Observations | None = None
+
+    @model_serializer(mode="wrap")
+    def _drop_unknown_observations(self, handler: Any) -> dict[str, Any]:
+        # added after format 1.2: absent when unknown, so such files stay byte-identical
+        data = handler(self)
+        if data.get("observations", 0) is None:
+            del data["observations"]
+        return data
 
     @field_validator("band")
     @classmethod
@@ -226,6 +251,19 @@ class PatchMetadata(BaseModel):
         import astropy.units as u
 
         return u.Unit(self.units)
+
+    @cached_property
+    def cell_common(self) -> CellCommon:
+        """What every cell of the patch carries (:attr:`CellCoadd.common`)."""
+        return CellCommon(
+            units=self.units,
+            zero_point=self.zero_point,
+            band=self.band,
+            mask_bits=self.mask_bits,
+            tract=self.tract,
+            patch=self.patch,
+            skymap=self.skymap_config.name,
+        )
 
     def unit_cards(self) -> dict[str, list[tuple[str, object, str]]]:
         """``BUNIT`` (and for counts ``MAGZERO``) keywords of the planes in flux or flux
@@ -376,6 +414,14 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             if cell.is_empty and not np.all(cell.mask & no_data):
                 raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
             checked[key] = cell
+        common = metadata.cell_common
+        for key, cell in checked.items():  # a cell taken from the patch describes itself
+            if cell.common != common:
+                # a shallow copy (the arrays are shared): a cell given here may belong to
+                # another patch too, whose description it keeps
+                cell = copy.copy(cell)
+                cell.attach(common)
+                checked[key] = cell
         self.cells: dict[tuple[int, int], CellCoadd] = {k: checked[k] for k in sorted(checked)}
 
     def __getitem__(self, index: tuple[int, int]) -> CellCoadd:

@@ -19,8 +19,9 @@ from typing import Literal
 import numpy as np
 
 #: Lossless compression that suits a plane's values. ``"float_bits"`` (float32 planes):
-#: compress the IEEE-754 bit patterns (FITS: the plane tile-compressed with GZIP_2 as int32, keyword
-#: ``CCBITS``; CFITSIO would otherwise turn every non-finite value into one NaN);
+#: keep every IEEE-754 bit pattern (FITS: GZIP_2 float tile compression without
+#: quantization, which viewers decode to floats, plus ``CCNFBITS`` listing the non-finite
+#: pixels whose bits CFITSIO turns into its one NaN);
 #: ``"integer"``: integer tile compression (FITS RICE_1); ``"none"``: stored as is in FITS.
 #: HDF5 files shuffle + gzip every dataset when compressed, lossless whatever the kind.
 Compression = Literal["float_bits", "integer", "none"]

@@ -16,27 +16,39 @@ what the coadd PSF describes.
 pixel response (then it is drawn without adding it again), for the record and the docs;
 the builder never branches on it.
 
-=================  =========================================  ==============  =========
-model              what it holds                              native form     pixel
-=================  =========================================  ==============  =========
-``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject  sky, arcsec  added
-``ImagePsf``       an odd square stamp on the exposure pixels  detector px    included
-``CallablePsf``    a callable (x, y) -> GSObject with a flag   sky, arcsec    flag
-``PsfexPsf``       a PSFEx ``.psf`` file                       detector px    included
-``PiffPsf``        a Piff model file (extra ``cellcoadd[piff]``)  Piff's WCS  included
-=================  =========================================  ==============  =========
+=================  =============================================  ============  =========
+model              what it holds                                  native form   pixel
+=================  =============================================  ============  =========
+``GalSimPsf``      a GSObject, or a callable (x, y) -> GSObject   sky, arcsec   added
+``ImagePsf``       an odd square stamp on the exposure pixels     detector px   included
+``CallablePsf``    a callable (x, y) -> GSObject with a flag      sky, arcsec   flag
+``PsfexPsf``       a parsed PSFEx model (:class:`PsfexData`)      detector px   included
+``PiffPsf``        a loaded Piff model (``cellcoadd[piff]``)      Piff's WCS    included
+=================  =============================================  ============  =========
+
+The model classes never read files (``model`` knows nothing of files): PSFEx and Piff
+files are read, recognised by content and parsed whole by :mod:`cellcoadd.io`
+(``cellcoadd.io.read_psfex(path)``, ``read_piff(path, trusted=True)``,
+``read_psf_file(path)``); ``PsfexPsf(path)`` says so.
 
 :func:`as_psf_model` turns the forms an :class:`~cellcoadd.model.exposure.Exposure`
-accepts into one of these: a bare GSObject or callable is a ``GalSimPsf`` (the callable
-form is pre-pixel), a ``galsim.Image`` an ``ImagePsf``.
+accepts into one of these: a bare GSObject (or ``VaryingPsf``, ``GridPsf``) is a
+``GalSimPsf``, a ``galsim.Image`` an ``ImagePsf``; a bare callable is refused (it must
+state whether it includes the pixel).
+
+Every model is checked where it is made or evaluated: profiles and stamps must have
+unit flux within :data:`PSF_FLUX_TOLERANCE` (:func:`check_psf_flux`) and finite values;
+PSFEx content is checked by :class:`PsfexData`.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import galsim
@@ -45,6 +57,7 @@ import numpy as np
 from cellcoadd.errors import PsfError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
+from cellcoadd.model.psf_profiles import MAX_STAMP_SIZE, GridPsf, VaryingPsf
 
 
 def _stamp(box: Box, wcs: galsim.BaseWCS) -> galsim.ImageD:
@@ -53,14 +66,38 @@ def _stamp(box: Box, wcs: galsim.BaseWCS) -> galsim.ImageD:
     return galsim.ImageD(bounds, wcs=wcs)
 
 
+#: Largest accepted ``|flux - 1|`` of a PSF profile or stamp: a PSF is the image of a
+#: unit-flux point source; a model of another flux would change the coadd PSF's shape
+#: (its inputs are weighted as if it had unit flux). PSFEx stamps sum to 1 within ~0.5%.
+PSF_FLUX_TOLERANCE = 0.01
+
+
+def check_psf_flux(flux: float, where: str) -> None:
+    """Refuse a PSF whose total flux is not 1 within :data:`PSF_FLUX_TOLERANCE`.
+
+    Raises
+    ------
+    PsfError
+        Naming ``where`` and the flux.
+    """
+    if not (math.isfinite(flux) and abs(flux - 1.0) <= PSF_FLUX_TOLERANCE):
+        raise PsfError(
+            f"{where}: the PSF has flux {flux:.6g}, not 1 within {PSF_FLUX_TOLERANCE} (a PSF "
+            "is the image of a unit-flux point source: normalise it, e.g. "
+            "profile.withFlux(1.0) or stamp / stamp.sum())"
+        )
+
+
 def _user_profile(func: Callable[[float, float], Any], x: float, y: float) -> galsim.GSObject:
-    """``func(x, y)``, which must be a GSObject; any failure of user code is a PsfError."""
+    """``func(x, y)``, which must be a unit-flux GSObject; any failure of user code is a
+    PsfError."""
     try:
         profile = func(x, y)
     except Exception as err:  # user code may fail in any way: the input is rejected
         raise PsfError(f"the PSF callable failed at ({x:.2f}, {y:.2f}): {err!r}") from err
     if not isinstance(profile, galsim.GSObject):
         raise PsfError(f"the PSF callable returned {type(profile).__name__}, not a GSObject")
+    check_psf_flux(profile.flux, f"the PSF callable at ({x:.2f}, {y:.2f})")
     return profile
 
 
@@ -135,6 +172,8 @@ class GalSimPsf(PsfModel):
     def __init__(self, profile: galsim.GSObject | Callable[[float, float], galsim.GSObject]):
         if not (isinstance(profile, galsim.GSObject) or callable(profile)):
             raise PsfError(f"GalSimPsf needs a GSObject or a callable, got {profile!r}")
+        if isinstance(profile, galsim.GSObject):
+            check_psf_flux(profile.flux, "GalSimPsf")
         self.profile = profile
 
     def at(self, x: float, y: float) -> galsim.GSObject:
@@ -199,6 +238,7 @@ class ImagePsf(PsfModel):
             raise PsfError(f"an image PSF must be an odd square stamp, got shape {array.shape}")
         if not (np.all(np.isfinite(array)) and array.sum() > 0):
             raise PsfError("an image PSF must be finite with a positive sum")
+        check_psf_flux(float(array.sum()), "ImagePsf (the sum of the stamp)")
         self.image = image if isinstance(image, galsim.Image) else galsim.Image(array)
 
     def draw(
@@ -210,45 +250,28 @@ class ImagePsf(PsfModel):
         return _draw_profile(profile, _stamp(box, wcs), x, y, center, "no_pixel")
 
 
+def _refuse_path(cls: type, first: object) -> None:
+    """Model classes never read files (``model`` knows nothing of files): say what does."""
+    if isinstance(first, (str, os.PathLike)):
+        reader = "read_psfex(path)" if cls is PsfexPsf else "read_piff(path, trusted=True)"
+        raise PsfError(
+            f"{cls.__name__} is made from a parsed model file: read {os.fspath(first)!r} with "
+            f"cellcoadd.io.{reader} (or cellcoadd.io.read_psf_file)"
+        )
+
+
 class _FileModel(PsfModel):
-    """A PSF model read from a file, held as the file's bytes (picklable, storable)."""
+    """A PSF model parsed from a model file; keeps the file's bytes (to store it in an
+    exposure file, and to compare models by content) and the name it was read from."""
 
     includes_pixel = True
 
-    def __init__(self, path: str | os.PathLike[str] | None = None, *, data: bytes | None = None):
-        if (path is None) == (data is None):
-            raise PsfError(f"{type(self).__name__} needs a path or data, not both")
-        if path is not None:
-            try:
-                with open(path, "rb") as file:
-                    data = file.read()
-            except OSError as err:
-                raise PsfError(f"{path}: cannot read the PSF model file ({err})") from err
-        self.source = os.fspath(path) if path is not None else "<bytes>"
-        self.data: bytes = data  # type: ignore[assignment]
-        self.sha256 = hashlib.sha256(self.data).hexdigest()
-        self._model: Any = None
-
-    @property
-    def model(self) -> Any:
-        """The library's model object, read from :attr:`data` on first use."""
-        if self._model is None:
-            try:
-                self._model = self._load()
-            except PsfError:
-                raise
-            except Exception as err:  # the reading library's errors are of many types
-                raise PsfError(
-                    f"{self.source}: not a valid {type(self).__name__} model file ({err})"
-                ) from err
-        return self._model
-
-    @abstractmethod
-    def _load(self) -> Any: ...
-
-    def __getstate__(self) -> dict[str, Any]:
-        # the library object is rebuilt from the bytes in the receiving process
-        return {**self.__dict__, "_model": None}
+    def __init__(self, data: bytes | None, source: str) -> None:
+        if not isinstance(data, bytes) or not data:
+            raise PsfError(f"{type(self).__name__} needs the model file's bytes")
+        self.data = data
+        self.source = source
+        self.sha256 = hashlib.sha256(data).hexdigest()
 
     def __eq__(self, other: object) -> bool:
         return (
@@ -261,40 +284,132 @@ class _FileModel(PsfModel):
         return hash((type(self).__name__, self.sha256))
 
 
+@dataclass(frozen=True, eq=False)
+class PsfexData:
+    """The content of a PSFEx model file, as parsed (see :func:`cellcoadd.io.read_psfex`).
+
+    The effective PSF (pixel included) at 1-based image position ``(X, Y)`` is
+    ``sum_k P_k basis[k]`` with ``P_k`` the monomials ``xs**i * ys**j`` (``j`` outer,
+    ``i + j <= degree``) of ``xs = (X - zero[0]) / scale[0]``, ``ys = (Y - zero[1]) /
+    scale[1]``, sampled every ``sample`` image pixels.
+
+    Parameters
+    ----------
+    basis : ndarray, shape (n_terms, ny, nx)
+        ``PSF_MASK``: one stamp per polynomial term, ``n_terms = (degree+1)(degree+2)/2``;
+        odd sides, finite values.
+    degree : int
+        ``POLDEG1`` (0..8).
+    zero : (float, float)
+        ``POLZERO1``, ``POLZERO2``, 1-based image pixels.
+    scale : (float, float)
+        ``POLSCAL1``, ``POLSCAL2``, image pixels, finite and non-zero.
+    sample : float
+        ``PSF_SAMP``: image pixels per PSFEx sample, finite, in (0, 100].
+
+    Raises
+    ------
+    PsfError
+        When any of the above does not hold.
+    """
+
+    basis: np.ndarray
+    degree: int
+    zero: tuple[float, float]
+    scale: tuple[float, float]
+    sample: float
+
+    def __post_init__(self) -> None:
+        basis = np.asarray(self.basis)
+        if isinstance(self.degree, bool) or not isinstance(self.degree, (int, np.integer)):
+            raise PsfError(f"PSFEx POLDEG1 must be an integer, got {self.degree!r}")
+        if not 0 <= int(self.degree) <= MAX_PSFEX_DEGREE:
+            raise PsfError(f"PSFEx POLDEG1 = {self.degree} is outside 0..{MAX_PSFEX_DEGREE}")
+        n_terms = (self.degree + 1) * (self.degree + 2) // 2
+        if basis.ndim != 3 or basis.shape[0] != n_terms:
+            raise PsfError(
+                f"PSFEx PSF_MASK has shape {basis.shape}, expected ({n_terms}, ny, nx) for "
+                f"POLDEG1 = {self.degree}"
+            )
+        if not all(n % 2 == 1 and n <= MAX_STAMP_SIZE for n in basis.shape[1:]):
+            raise PsfError(f"PSFEx stamps must have odd sides <= {MAX_STAMP_SIZE}: {basis.shape}")
+        if not np.issubdtype(basis.dtype, np.floating) or not np.all(np.isfinite(basis)):
+            raise PsfError("PSFEx PSF_MASK must hold finite floating-point values")
+        values = (*self.zero, *self.scale, self.sample)
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            raise PsfError(f"PSFEx POLZERO, POLSCAL and PSF_SAMP must be finite, got {values}")
+        if self.scale[0] == 0 or self.scale[1] == 0:
+            raise PsfError(f"PSFEx POLSCAL1, POLSCAL2 = {self.scale} must be non-zero")
+        if not 0 < self.sample <= 100:
+            raise PsfError(f"PSFEx PSF_SAMP = {self.sample} must be in (0, 100] pixels")
+        if not basis[0].sum() > 0:
+            raise PsfError("PSFEx constant term of PSF_MASK does not have a positive sum")
+        basis.setflags(write=False)
+        object.__setattr__(self, "basis", basis)
+        object.__setattr__(self, "degree", int(self.degree))
+
+    def stamp(self, x1: float, y1: float) -> np.ndarray:
+        """The sampled PSF at 1-based image position ``(x1, y1)`` (float32, as GalSim's
+        ``DES_PSFEx.getPSFArray``)."""
+        xs = (x1 - self.zero[0]) / self.scale[0]
+        ys = (y1 - self.zero[1]) / self.scale[1]
+        terms = np.array(
+            [xs**i * ys**j for j in range(self.degree + 1) for i in range(self.degree + 1 - j)]
+        )
+        return np.tensordot(terms, self.basis, (0, 0)).astype(np.float32)
+
+
+#: Largest PSFEx polynomial degree accepted (PSFEx itself uses up to 3 or 4).
+MAX_PSFEX_DEGREE = 8
+
+
 class PsfexPsf(_FileModel):
-    """A PSFEx model (``.psf`` file), read with GalSim's ``galsim.des.DES_PSFEx``.
+    """A PSFEx model, parsed from a ``.psf`` file by :func:`cellcoadd.io.read_psfex`.
 
     PSFEx samples the effective PSF (pixel included) every ``PSF_SAMP`` pixels, with
     polynomials in SExtractor's 1-based ``X_IMAGE``/``Y_IMAGE``: the model is evaluated
-    at ``(x + 1, y + 1)`` for 0-based ``(x, y)`` and drawn on the detector's pixels
-    without adding the pixel. Stamps sum to 1 within about 0.5% depending on the
+    at ``(x + 1, y + 1)`` for 0-based ``(x, y)`` as GalSim's ``galsim.des.DES_PSFEx``
+    does (Lanczos-3 interpolation of the stamp, unit flux) and drawn on the detector's
+    pixels without adding the pixel. Stamps sum to 1 within about 0.5% depending on the
     sub-pixel phase (the resampling of PSFEx's grid); the coadd PSF is normalised after
     averaging.
 
     Parameters
     ----------
-    path : path-like, optional
-        The ``.psf`` file.
-    data : bytes, optional
-        Its contents instead (as stored in exposure files).
+    parsed : PsfexData
+        The model's content.
+    data : bytes
+        The model file's bytes (stored with an exposure, compared by SHA-256).
+    source : str
+        The file it was read from, for messages.
     """
 
-    def _load(self) -> Any:
-        import io
-
-        import galsim.des
-        from astropy.io import fits
-
-        with fits.open(io.BytesIO(self.data)) as hdus:
-            hdu = hdus[1]
-            return galsim.des.DES_PSFEx(hdu)
+    def __init__(
+        self, parsed: PsfexData, *, data: bytes | None = None, source: str = "<bytes>"
+    ) -> None:
+        _refuse_path(PsfexPsf, parsed)
+        if not isinstance(parsed, PsfexData):
+            raise PsfError(f"PsfexPsf needs a PsfexData, got {type(parsed).__name__}")
+        super().__init__(data, source)
+        self.parsed = parsed
 
     def draw(
         self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
     ) -> np.ndarray:
+        array = self.parsed.stamp(x + 1.0, y + 1.0)
+        if not (np.all(np.isfinite(array)) and array.sum() > 0):
+            raise PsfError(
+                f"{self.source}: the PSFEx model at ({x:.2f}, {y:.2f}) does not have a "
+                "positive finite sum (polynomial evaluated far outside its fit?)"
+            )
         try:
-            profile = self.model.getPSF(galsim.PositionD(x + 1.0, y + 1.0))
-        except (galsim.GalSimError, ValueError, IndexError) as err:
+            profile = galsim.InterpolatedImage(
+                galsim.Image(array),
+                scale=self.parsed.sample,
+                flux=1.0,
+                x_interpolant=galsim.Lanczos(3),
+            )
+        except (galsim.GalSimError, ValueError) as err:
             raise PsfError(
                 f"{self.source}: PSFEx model failed at ({x:.2f}, {y:.2f}): {err}"
             ) from err
@@ -304,7 +419,8 @@ class PsfexPsf(_FileModel):
 
 
 class PiffPsf(_FileModel):
-    """A Piff model file (optional extra ``cellcoadd[piff]``).
+    """A Piff model, loaded by :func:`cellcoadd.io.read_piff` (optional extra
+    ``cellcoadd[piff]``).
 
     Piff draws with the WCS it was fitted with (stored in the file) in the image
     coordinates of the fit; ``origin`` is the coordinate of the first pixel centre in
@@ -314,59 +430,48 @@ class PiffPsf(_FileModel):
 
     Parameters
     ----------
-    path : path-like, optional
-        The Piff model file.
-    data : bytes, optional
-        Its contents instead (as stored in exposure files).
+    model : piff.PSF
+        The loaded model (Piff files hold pickled objects: only
+        ``read_piff(path, trusted=True)`` loads them).
+    data : bytes
+        The model file's bytes (stored with an exposure, compared by SHA-256).
+    source : str
+        The file it was read from, for messages.
     chipnum : int, optional
         Chip of a multi-chip model (default: the only chip).
     origin : int
         0 or 1, see above.
-
-    Notes
-    -----
-    Piff files hold pickled WCS objects: read only model files you trust.
     """
 
     def __init__(
         self,
-        path: str | os.PathLike[str] | None = None,
+        model: Any,
         *,
         data: bytes | None = None,
+        source: str = "<bytes>",
         chipnum: int | None = None,
         origin: int = 1,
-    ):
-        super().__init__(path, data=data)
-        if origin not in (0, 1):
-            raise PsfError(f"PiffPsf origin must be 0 or 1, got {origin!r}")
+    ) -> None:
+        _refuse_path(PiffPsf, model)
+        super().__init__(data, source)
+        if origin not in (0, 1) or isinstance(origin, bool):
+            raise PsfError(f"{source}: PiffPsf origin must be 0 or 1, got {origin!r}")
+        chips = list(getattr(model, "wcs", None) or [])
+        if not chips or not hasattr(model, "get_profile"):
+            raise PsfError(f"{source}: not a Piff PSF model (no chips with a WCS)")
+        if chipnum is None and len(chips) != 1:
+            raise PsfError(f"{source}: give chipnum, the model has chips {chips}")
+        if chipnum is not None and chipnum not in chips:
+            raise PsfError(f"{source}: chipnum {chipnum} is not among the model's {chips}")
+        self.model = model
         self.chipnum = chipnum
         self.origin = origin
-
-    def _load(self) -> Any:
-        import tempfile
-
-        try:
-            import piff
-        except ImportError as err:
-            raise PsfError(
-                "reading Piff models needs the optional extra: pip install 'cellcoadd[piff]'"
-            ) from err
-        # piff reads from a file name only
-        with tempfile.NamedTemporaryFile(suffix=".piff") as file:
-            file.write(self.data)
-            file.flush()
-            return piff.read(file.name)
 
     def draw(
         self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
     ) -> np.ndarray:
         model = self.model
-        chipnum = self.chipnum
-        if chipnum is None:
-            chips = list(model.wcs)
-            if len(chips) != 1:
-                raise PsfError(f"{self.source}: give chipnum, the model has chips {chips}")
-            chipnum = chips[0]
+        chipnum = self.chipnum if self.chipnum is not None else list(model.wcs)[0]
         xf, yf = x + self.origin, y + self.origin
         try:
             profile, method = model.get_profile(xf, yf, chipnum=chipnum)
@@ -375,6 +480,7 @@ class PiffPsf(_FileModel):
             raise PsfError(
                 f"{self.source}: Piff model failed at ({x:.2f}, {y:.2f}): {err}"
             ) from err
+        check_psf_flux(float(profile.flux), f"{self.source} at ({x:.2f}, {y:.2f})")
         # Piff's profile is on the sky of its own WCS: drawn through that WCS's Jacobian
         image = _stamp(box, local)
         cx, cy = center if center is not None else (x, y)
@@ -385,17 +491,28 @@ def as_psf_model(psf: object) -> PsfModel:
     """The :class:`PsfModel` for the PSF forms an exposure accepts.
 
     A PsfModel is returned as is; a ``galsim.Image`` becomes an :class:`ImagePsf`; a
-    GSObject or any other callable a :class:`GalSimPsf` (pre-pixel).
+    GSObject, a :class:`~cellcoadd.model.psf_profiles.VaryingPsf` or a
+    :class:`~cellcoadd.model.psf_profiles.GridPsf` (pre-pixel by construction) a
+    :class:`GalSimPsf`.
 
     Raises
     ------
     PsfError
-        For anything else.
+        For anything else, including a bare callable: whether its profiles include the
+        pixel must be stated (``GalSimPsf(func)`` for profiles without it,
+        ``CallablePsf(func, includes_pixel=...)``); taking a PSFEx or Piff profile as
+        pre-pixel would apply the pixel twice.
     """
     if isinstance(psf, PsfModel):
         return psf
     if isinstance(psf, galsim.Image):
         return ImagePsf(psf)
-    if isinstance(psf, galsim.GSObject) or callable(psf):
+    if isinstance(psf, (galsim.GSObject, VaryingPsf, GridPsf)):
         return GalSimPsf(psf)
+    if callable(psf):
+        raise PsfError(
+            f"a callable PSF ({psf!r}) must state whether its profiles include the pixel: "
+            "GalSimPsf(func) for profiles without it (e.g. atmosphere and optics), "
+            "CallablePsf(func, includes_pixel=True) for PSFEx- or Piff-like profiles"
+        )
     raise PsfError(f"psf must be a PsfModel, a GSObject, a callable or a galsim.Image, got {psf!r}")

@@ -4,6 +4,9 @@
 * :mod:`cellcoadd.pipelines.stamp_pairs`: the paper's paired stamp simulations, built
   into cells and measured (or measured on the epochs themselves:
   :mod:`cellcoadd.pipelines.epoch_measurements`);
+* :mod:`cellcoadd.pipelines.tract_run`: tract runs from an exposure index on
+  dask.distributed (``cellcoadd run``), with the run ledger
+  (:mod:`~cellcoadd.pipelines.ledger`) and report (:mod:`~cellcoadd.pipelines.run_report`);
 * :mod:`cellcoadd.pipelines.shear_validation`: the shear-bias validation over many pairs
   (``cellcoadd validate-shear``; BFD's and AnaCal's summaries in
   :mod:`~cellcoadd.pipelines.bfd_validation` and :mod:`~cellcoadd.pipelines.anacal_validation`,
@@ -26,7 +29,7 @@ _EXPORTS: dict[str, str] = {
     "M_REQUIREMENT": "cellcoadd.pipelines.bias_table",
     "PAPER_TABLE1": "cellcoadd.pipelines.bias_table",
     "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.bias_table",
-    "PairCatalogue": "cellcoadd.pipelines.shear_validation",
+    "PairCatalogue": "cellcoadd.pipelines.stamp_pairs",
     "format_bias_table": "cellcoadd.pipelines.bias_table",
     "measure_pairs": "cellcoadd.pipelines.shear_validation",
     "run_pairs": "cellcoadd.pipelines.shear_validation",
@@ -39,6 +42,9 @@ _EXPORTS: dict[str, str] = {
     "measure_pair": "cellcoadd.pipelines.stamp_pairs",
     "measure_multi_epoch": "cellcoadd.pipelines.epoch_measurements",
     "measure_single_epoch": "cellcoadd.pipelines.epoch_measurements",
+    "RunResult": "cellcoadd.pipelines.tract_run",
+    "plan_tract": "cellcoadd.pipelines.tract_run",
+    "run_tract": "cellcoadd.pipelines.tract_run",
 }
 
 __all__ = [
@@ -48,6 +54,7 @@ __all__ = [
     "EpochGeometry",
     "PairCatalogue",
     "PairMeasurement",
+    "RunResult",
     "ValidationSettings",
     "format_bias_table",
     "largest_cell_inner",
@@ -55,7 +62,9 @@ __all__ = [
     "measure_pair",
     "measure_pairs",
     "measure_single_epoch",
+    "plan_tract",
     "run_pairs",
+    "run_tract",
     "summarize",
     "validate_shear",
 ]
@@ -77,11 +86,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         measure_single_epoch,
     )
     from cellcoadd.pipelines.shear_validation import (
-        PairCatalogue,
         measure_pairs,
         run_pairs,
         summarize,
         validate_shear,
     )
-    from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
+    from cellcoadd.pipelines.stamp_pairs import PairCatalogue, PairMeasurement, measure_pair
+    from cellcoadd.pipelines.tract_run import RunResult, plan_tract, run_tract
     from cellcoadd.pipelines.validation_settings import ValidationSettings, largest_cell_inner

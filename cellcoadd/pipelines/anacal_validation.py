@@ -8,17 +8,15 @@ mean shear being ``<e> / <de/dg>`` over the pairs whose two members were measure
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from cellcoadd.errors import ShearError
 from cellcoadd.pipelines.bias_table import summary_fields
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear.anacal_adapter import paired_bias
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 
 def summarize_anacal(

@@ -13,18 +13,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from cellcoadd.errors import BfdError
 from cellcoadd.pipelines.bias_table import summary_fields
-from cellcoadd.pipelines.stamp_pairs import bfd_noise_sigma, bfd_templates
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, bfd_noise_sigma, bfd_templates
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 from cellcoadd.shear import bfd
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,14 +8,12 @@ additions, without a paper value.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue
 from cellcoadd.pipelines.validation_settings import ValidationSettings, expected_inputs
-
-if TYPE_CHECKING:
-    from cellcoadd.pipelines.shear_validation import PairCatalogue
 
 #: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1, by mode. The
 #: paper has no single-epoch row ("single" is our extra reference, the first epoch alone).
@@ -70,7 +68,7 @@ def summary_fields(
     }
 
 
-#: Requirement on |m| of ambitious surveys quoted by the paper.
+#: Requirement on ``|m|`` of ambitious surveys quoted by the paper.
 M_REQUIREMENT = 1.0e-3
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -36,27 +35,20 @@ from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ShearErro
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
-    M_REQUIREMENT,
-    PAPER_LABELS,
-    PAPER_TABLE1,
-    PAPER_TABLE1_ROWS,
-    format_bias_table,
-    paper_value,
     summary_fields,
 )
-from cellcoadd.pipelines.stamp_pairs import PairMeasurement, measure_pair
+from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import (
     BFD_OVERSAMPLE,
     Method,
     Mode,
     ValidationSettings,
     check_method_mode,
-    expected_inputs,
     stamp_cell,
 )
-from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
+from cellcoadd.shear.metacal import ReconvolutionKind
 from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
-from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
+from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
 #: Keys of :func:`validate_shear`'s result that are always JSON-serialisable.
@@ -74,73 +66,6 @@ RESULT_KEYS: tuple[str, ...] = (
     "method",
     "settings",
 )
-
-
-@dataclass(frozen=True, eq=False)
-class PairCatalogue:
-    """Measurements of many pairs as compact arrays (about 0.8 kB per pair).
-
-    Attributes
-    ----------
-    index : ndarray of int64
-        Object indices, increasing.
-    plus, minus : dict of str to ndarray
-        For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
-        ``+g`` and ``-g`` members, aligned with ``index`` (what
-        :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
-        :data:`~cellcoadd.pipelines.stamp_pairs.BFD_DTYPE` rows under ``"bfd"``.
-    noise_sigma, snr, n_inputs, cpu_seconds : ndarray
-        Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
-    """
-
-    index: np.ndarray
-    plus: dict[str, np.ndarray]
-    minus: dict[str, np.ndarray]
-    noise_sigma: np.ndarray
-    snr: np.ndarray
-    n_inputs: np.ndarray
-    cpu_seconds: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.index)
-
-    @classmethod
-    def from_pairs(cls, pairs: Sequence[PairMeasurement]) -> PairCatalogue:
-        """Stack single-object measurements."""
-        keys = list(pairs[0].plus) if pairs else list(METACAL_TYPES)
-        return cls(
-            index=np.array([pair.index for pair in pairs], dtype=np.int64),
-            plus={t: _rows([pair.plus[t] for pair in pairs]) for t in keys},
-            minus={t: _rows([pair.minus[t] for pair in pairs]) for t in keys},
-            noise_sigma=np.array([pair.noise_sigma for pair in pairs], dtype=np.float64),
-            snr=np.array([pair.snr for pair in pairs], dtype=np.float64),
-            n_inputs=np.array([pair.n_inputs for pair in pairs], dtype=np.int64),
-            cpu_seconds=np.array([pair.cpu_seconds for pair in pairs], dtype=np.float64),
-        )
-
-    @classmethod
-    def concatenate(cls, catalogues: Sequence[PairCatalogue]) -> PairCatalogue:
-        """Join catalogues (e.g. chunks or index ranges of a run), ordered by index."""
-        index = np.concatenate([c.index for c in catalogues])
-        order = np.argsort(index, kind="stable")
-        keys = list(catalogues[0].plus)
-
-        def join(name: str) -> np.ndarray:
-            return np.concatenate([getattr(c, name) for c in catalogues])[order]
-
-        return cls(
-            index=index[order],
-            plus={t: np.concatenate([c.plus[t] for c in catalogues])[order] for t in keys},
-            minus={t: np.concatenate([c.minus[t] for c in catalogues])[order] for t in keys},
-            noise_sigma=join("noise_sigma"),
-            snr=join("snr"),
-            n_inputs=join("n_inputs"),
-            cpu_seconds=join("cpu_seconds"),
-        )
-
-
-def _rows(records: list[np.ndarray]) -> np.ndarray:
-    return np.concatenate(records) if records else np.zeros(0, dtype=SHAPE_DTYPE)
 
 
 def measure_pairs(settings: ValidationSettings, indices: Sequence[int]) -> PairCatalogue:
@@ -161,7 +86,7 @@ def run_pairs(
     chunk_size: int | None = None,
     progress: bool = True,
 ) -> PairCatalogue:
-    """Measure objects ``first_index .. first_index + n_objects - 1``.
+    """Measure objects ``first_index`` to ``first_index + n_objects - 1``.
 
     Arguments are those of :func:`validate_shear`; ``first_index`` lets a long run be
     split into index ranges whose catalogues :meth:`PairCatalogue.concatenate` joins.
@@ -403,16 +328,8 @@ def validate_shear(
 
 
 __all__ = [
-    "M_REQUIREMENT",
-    "PAPER_LABELS",
-    "PAPER_TABLE1",
-    "PAPER_TABLE1_ROWS",
     "RESULT_KEYS",
-    "PairCatalogue",
-    "expected_inputs",
-    "format_bias_table",
     "measure_pairs",
-    "paper_value",
     "run_pairs",
     "summarize",
     "validate_shear",

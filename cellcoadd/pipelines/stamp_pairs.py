@@ -73,17 +73,11 @@ from cellcoadd.pipelines.epoch_measurements import (
     measure_multi_epoch,
     measure_single_epoch,
 )
-from cellcoadd.pipelines.validation_settings import (
-    METHODS,
-    MODES,
-    ValidationSettings,
-    largest_cell_inner,
-    stamp_cell,
-)
+from cellcoadd.pipelines.validation_settings import ValidationSettings, stamp_cell
 from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
-from cellcoadd.shear.shapes import empty_record
+from cellcoadd.shear.shapes import SHAPE_DTYPE, empty_record
 from cellcoadd.sim.stamps import StampObject, simulate_object
 
 #: ``flags`` bit of a measurement that could not be made because the coadd is empty.
@@ -127,6 +121,74 @@ class PairMeasurement:
     snr: float
     n_inputs: int
     cpu_seconds: float
+
+
+@dataclass(frozen=True, eq=False)
+class PairCatalogue:
+    """Measurements of many pairs as compact arrays (about 0.8 kB per pair).
+
+    Attributes
+    ----------
+    index : ndarray of int64
+        Object indices, increasing.
+    plus, minus : dict of str to ndarray
+        For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
+        ``+g`` and ``-g`` members, aligned with ``index`` (what
+        :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
+        :data:`~cellcoadd.pipelines.epoch_measurements.BFD_DTYPE` rows under ``"bfd"``.
+    noise_sigma, snr, n_inputs, cpu_seconds : ndarray
+        Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
+    """
+
+    index: np.ndarray
+    plus: dict[str, np.ndarray]
+    minus: dict[str, np.ndarray]
+    noise_sigma: np.ndarray
+    snr: np.ndarray
+    n_inputs: np.ndarray
+    cpu_seconds: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @classmethod
+    def from_pairs(cls, pairs: Sequence[PairMeasurement]) -> PairCatalogue:
+        """Stack single-object measurements."""
+        keys = list(pairs[0].plus) if pairs else list(METACAL_TYPES)
+        return cls(
+            index=np.array([pair.index for pair in pairs], dtype=np.int64),
+            plus={t: _rows([pair.plus[t] for pair in pairs]) for t in keys},
+            minus={t: _rows([pair.minus[t] for pair in pairs]) for t in keys},
+            noise_sigma=np.array([pair.noise_sigma for pair in pairs], dtype=np.float64),
+            snr=np.array([pair.snr for pair in pairs], dtype=np.float64),
+            n_inputs=np.array([pair.n_inputs for pair in pairs], dtype=np.int64),
+            cpu_seconds=np.array([pair.cpu_seconds for pair in pairs], dtype=np.float64),
+        )
+
+    @classmethod
+    def concatenate(cls, catalogues: Sequence[PairCatalogue]) -> PairCatalogue:
+        """Join catalogues (e.g. chunks or index ranges of a run), ordered by index."""
+        index = np.concatenate([c.index for c in catalogues])
+        order = np.argsort(index, kind="stable")
+        keys = list(catalogues[0].plus)
+
+        def join(name: str) -> np.ndarray:
+            return np.concatenate([getattr(c, name) for c in catalogues])[order]
+
+        return cls(
+            index=index[order],
+            plus={t: np.concatenate([c.plus[t] for c in catalogues])[order] for t in keys},
+            minus={t: np.concatenate([c.minus[t] for c in catalogues])[order] for t in keys},
+            noise_sigma=join("noise_sigma"),
+            snr=join("snr"),
+            n_inputs=join("n_inputs"),
+            cpu_seconds=join("cpu_seconds"),
+        )
+
+
+def _rows(records: list[np.ndarray]) -> np.ndarray:
+    """Records of one kind of many pairs, joined (no pairs: empty metacal rows)."""
+    return np.concatenate(records) if records else np.zeros(0, dtype=SHAPE_DTYPE)
 
 
 def _generator(settings: ValidationSettings, index: int, stream: int) -> np.random.Generator:
@@ -390,16 +452,10 @@ def measure_pair(
 
 
 __all__ = [
-    "BFD_DTYPE",
-    "METHODS",
-    "MODES",
     "NO_COADD",
+    "PairCatalogue",
     "PairMeasurement",
-    "ValidationSettings",
     "bfd_noise_sigma",
     "bfd_templates",
-    "epoch_psf_image",
-    "largest_cell_inner",
     "measure_pair",
-    "stamp_cell",
 ]

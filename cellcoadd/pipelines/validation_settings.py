@@ -14,7 +14,7 @@ from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.model.build_config import BuildConfig
-from cellcoadd.shear.bfd_moments import DEFAULT_OVERSAMPLE
+from cellcoadd.shear.bfd import DEFAULT_OVERSAMPLE
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 

@@ -15,8 +15,10 @@ import numpy as np
 
 from cellcoadd.analysis.rejection import RejectionStats
 from cellcoadd.analysis.snr_loss import SnrLossTable, exact_ratio_curve, toy_variance_ratio
+from cellcoadd.plots import style
 
 
+@style.styled
 def plot_snr_loss(table: SnrLossTable, path: str | Path, n_curve: int = 41, dpi: int = 90) -> Path:
     """Plot measured ratios with error bars, the exact prediction (solid) and the toy (dashed).
 
@@ -83,6 +85,7 @@ def plot_snr_loss(table: SnrLossTable, path: str | Path, n_curve: int = 41, dpi:
     return path
 
 
+@style.styled
 def plot_rejection(results: Sequence[RejectionStats], path: str | Path, dpi: int = 80) -> Path:
     """Histograms of the rejected-visit fraction and the 5-sigma depth loss per cell.
 

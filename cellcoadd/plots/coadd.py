@@ -13,24 +13,25 @@ from collections import Counter
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.colors import AsinhNorm, ListedColormap, Normalize
-from matplotlib.figure import Figure
-from matplotlib.patches import Patch as LegendPatch
 from matplotlib.patches import Rectangle
 
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.patch_coadd import PatchCoadd
-
-#: colours of the first mask bits present (a pixel shows its first bit present)
-_BIT_COLOURS: list[str] = [f"C{i}" for i in range(10)]
+from cellcoadd.plots import style
 
 
 def unit_label(units: str | None, zero_point: float | None = None) -> str:
     """Colourbar label of the image plane from the metadata's ``units``.
 
-    ``"count"`` -> ``"counts / pixel (zero point 30)"``, ``"nJy"`` -> ``"nJy / pixel"``;
+    ``"count"`` -> ``"counts / pixel (AB zero point 30)"``, ``"nJy"`` -> ``"nJy / pixel"``;
     other (older, free-text) units are shown as they are.
+
+    Examples
+    --------
+    >>> unit_label("nJy"), unit_label("count", 30.0)
+    ('nJy / pixel', 'counts / pixel (AB zero point 30)')
     """
     if not units:
         return "pixel value"
@@ -95,9 +96,9 @@ def _colourbar(fig, shown, ax, label: str, norm: Normalize | None = None):
 
 
 def _image_axes(ax, values: np.ndarray, title: str, norm=None, cmap: str = "gray_r", extent=None):
-    cmap_obj = colormaps[cmap].with_extremes(bad="tab:orange")
+    cmap_obj = colormaps[cmap].with_extremes(bad=style.NO_DATA)
     shown = ax.imshow(values, origin="lower", norm=norm, cmap=cmap_obj, extent=extent)
-    ax.set_title(title, fontsize="medium")
+    ax.set_title(title)
     return shown
 
 
@@ -110,6 +111,7 @@ def _stitched_wcs(patch: PatchCoadd):
     return None
 
 
+@style.styled
 def plot_stitched(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
     """The patch inner region stitched from cell inner regions, on RA/Dec axes, with the
     cell grid. Empty cells (no input covered them) show in orange.
@@ -118,15 +120,15 @@ def plot_stitched(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
     box = patch.patch_inner_bbox
     meta = patch.metadata
     wcs = _stitched_wcs(patch)
-    fig = Figure(figsize=(8, 7), layout="constrained")
+    fig = style.figure(8.0, 7.0)
     ax = fig.add_subplot(projection=wcs) if wcs is not None else fig.add_subplot()
     norm = _stretch(image)
     shown = _image_axes(ax, image, "", norm)
     side = meta.cell_inner
     for edge in range(0, box.nx + 1, side):
-        ax.axvline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
+        ax.axvline(edge - 0.5, color=style.INNER, linewidth=0.6, alpha=0.7)
     for edge in range(0, box.ny + 1, side):
-        ax.axhline(edge - 0.5, color="tab:cyan", linewidth=0.6, alpha=0.7)
+        ax.axhline(edge - 0.5, color=style.INNER, linewidth=0.6, alpha=0.7)
     ax.set_xlim(-0.5, box.nx - 0.5)
     ax.set_ylim(-0.5, box.ny - 0.5)
     scale = meta.skymap_config.pixel_scale
@@ -143,8 +145,7 @@ def plot_stitched(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
         ax.set_xlabel("x [pixels]")
         ax.set_ylabel("y [pixels]")
     _colourbar(fig, shown, ax, unit_label(meta.units, getattr(meta, "zero_point", None)), norm)
-    fig.savefig(path, dpi=90)
-    return os.fspath(path)
+    return style.save(fig, path)
 
 
 def _mask_categories(mask: np.ndarray, bits: MaskBits) -> tuple[np.ndarray, list[str]]:
@@ -156,6 +157,143 @@ def _mask_categories(mask: np.ndarray, bits: MaskBits) -> tuple[np.ndarray, list
     return categories, present
 
 
+def _outline_inner(ax, cell: CellCoadd) -> None:
+    inner, outer = cell.inner_bbox, cell.outer_bbox
+    ax.add_patch(
+        Rectangle(
+            (inner.x_start - outer.x_start - 0.5, inner.y_start - outer.y_start - 0.5),
+            inner.nx,
+            inner.ny,
+            fill=False,
+            edgecolor=style.INNER,
+            linewidth=style.LINE,
+        )
+    )
+
+
+def _inputs_text(cell: CellCoadd, rows: int = 14) -> str:
+    """The cell's inputs as a small monospace table (the first ``rows``, used first)."""
+    lines = [f"{'visit':>7} {'det':>4}  {'status':<16}{'weight':>9}"]
+    records = sorted(cell.inputs, key=lambda r: (r.status != "used", r.visit, r.detector))
+    for record in records[:rows]:
+        weight = f"{record.weight:.3g}" if record.weight > 0 else "-"
+        lines.append(f"{record.visit:>7} {record.detector:>4}  {record.status:<16}{weight:>9}")
+    if len(cell.inputs) > rows:
+        lines.append(f"... and {len(cell.inputs) - rows} more")
+    return "\n".join(lines)
+
+
+def cell_planes_figure(
+    cell: CellCoadd,
+    *,
+    mask_bits: MaskBits | None = None,
+    noise_index: int = 0,
+    units: str | None = None,
+    zero_point: float | None = None,
+):
+    """The figure :func:`plot_cell_planes` writes (a :class:`matplotlib.figure.Figure`).
+
+    A 2 x 3 grid: image, noise realization ``noise_index`` and PSF on the first row; mask
+    bits, masked fraction and the list of inputs on the second.
+    """
+    used = cell.n_used
+    if cell.is_empty:  # a message and the reasons its inputs were rejected
+        rows = min(len(cell.inputs), 8)
+        fig = style.figure(7.0, 1.4 + 0.22 * (rows + 2) if rows else 1.4)
+        fig.suptitle(f"cell {cell.index} of tract {cell.tract}: empty, no input covers it")
+        ax = fig.add_subplot()
+        ax.set_axis_off()
+        if cell.inputs:
+            ax.set_title(f"inputs ({len(cell.inputs)}, all rejected)")
+            text = _inputs_text(cell, rows=rows)
+            ax.text(0.0, 1.0, text, family="monospace", va="top", fontsize="small")
+        else:
+            ax.set_title("no exposure overlaps it")
+        return fig
+    fig = style.figure(13.5, 6.9, compressed=True)
+    label = unit_label(units, zero_point)
+    fig.suptitle(
+        f"cell {cell.index} of tract {cell.tract}: {used} input(s) used, "
+        f"{len(cell.inputs) - used} rejected (cyan: inner region; orange: no data)"
+    )
+    grid = fig.add_gridspec(2, 3)
+    sky = {"projection": cell.wcs}
+    ax_image = fig.add_subplot(grid[0, 0], **sky)
+    ax_noise = fig.add_subplot(grid[0, 1], **sky)
+    ax_psf = fig.add_subplot(grid[0, 2])
+    ax_mask = fig.add_subplot(grid[1, 0], **sky)
+    ax_mfrac = fig.add_subplot(grid[1, 1], **sky)
+    ax_inputs = fig.add_subplot(grid[1, 2])
+
+    norm = _stretch(cell.image)
+    shown = _image_axes(ax_image, cell.image, "image", norm)
+    _colourbar(fig, shown, ax_image, label, norm)
+    if cell.n_noise:
+        title = f"noise realization {noise_index} (of {cell.n_noise})"
+        shown = _image_axes(ax_noise, cell.noise[noise_index], title, norm)
+        _colourbar(fig, shown, ax_noise, label, norm)
+    else:
+        ax_noise.set_title("no noise realization")
+
+    psf = np.clip(cell.psf, cell.psf.max() * 1e-5, None)
+    half = cell.psf.shape[0] // 2
+    shown = _image_axes(
+        ax_psf,
+        np.log10(psf),
+        "PSF at the cell centre",
+        cmap="viridis",
+        extent=(-half - 0.5, half + 0.5, -half - 0.5, half + 0.5),
+    )
+    ax_psf.set_xlabel("x offset [pixels]")
+    ax_psf.set_ylabel("y offset [pixels]")
+    ax_psf.set_aspect("equal")
+    _colourbar(fig, shown, ax_psf, "log10(PSF flux fraction / pixel)")
+
+    categories, present = _mask_categories(cell.mask, mask_bits or MaskBits())
+    colours: list[str] = [
+        "white",
+        *(style.BIT_COLOURS[i % len(style.BIT_COLOURS)] for i in range(len(present))),
+    ]
+    shown = ax_mask.imshow(
+        categories,
+        origin="lower",
+        cmap=ListedColormap(colours),
+        vmin=-0.5,
+        vmax=len(present) + 0.5,
+        interpolation="nearest",
+    )
+    ax_mask.set_title("mask bits (first bit set)")
+    # the legend of the bits is a discrete colourbar: one labelled step per bit present
+    bar = fig.colorbar(shown, ax=ax_mask, shrink=0.85, pad=0.02)
+    bar.set_ticks(range(len(present) + 1), labels=["none", *present])
+    bar.ax.tick_params(length=0)
+    bar.ax.minorticks_off()
+
+    shown = _image_axes(ax_mfrac, cell.mfrac, "masked fraction", cmap="magma")
+    shown.set_clim(0.0, max(float(np.nanmax(cell.mfrac)), 1e-3))
+    _colourbar(fig, shown, ax_mfrac, "fraction of the weight masked")
+
+    ax_inputs.set_axis_off()
+    ax_inputs.set_title("inputs")
+    ax_inputs.text(
+        0.0,
+        1.0,
+        _inputs_text(cell),
+        transform=ax_inputs.transAxes,
+        family="monospace",
+        fontsize="small",
+        va="top",
+        ha="left",
+    )
+    for ax in (ax_image, ax_noise, ax_mask, ax_mfrac):
+        _sky_axes(ax)
+        _outline_inner(ax, cell)
+    for ax in (ax_noise, ax_mfrac):  # the column's left neighbour names the axis
+        ax.coords[1].set_axislabel("")
+    return fig
+
+
+@style.styled
 def plot_cell_planes(
     cell: CellCoadd,
     path: str | os.PathLike[str],
@@ -165,94 +303,20 @@ def plot_cell_planes(
     units: str | None = None,
     zero_point: float | None = None,
 ) -> str:
-    """One cell: image, a noise realization, PSF (log), mask bits and masked fraction.
+    """One cell: image, a noise realization, PSF (log), mask bits, masked fraction and its
+    inputs, in a 2 x 3 grid.
 
     Image panels are on RA/Dec axes (the cell's WCS), the PSF on pixel offsets from its
     centre; every panel has a colourbar with units (``units``, ``zero_point``: the
     coadd metadata's), the mask a legend of its bits. The inner region is outlined.
     """
-    fig = Figure(figsize=(22, 5.2), layout="constrained")
-    label = unit_label(units, zero_point)
-    if cell.is_empty:
-        ax = fig.add_subplot()
-        ax.text(0.5, 0.5, "empty cell: no input covers it", ha="center", va="center")
-        ax.set_axis_off()
-    else:
-        axes = [
-            fig.add_subplot(1, 5, i + 1, projection=None if i == 2 else cell.wcs) for i in range(5)
-        ]
-        norm = _stretch(cell.image)
-        shown = _image_axes(axes[0], cell.image, "image", norm)
-        _colourbar(fig, shown, axes[0], label, norm)
-        if cell.n_noise:
-            shown = _image_axes(
-                axes[1], cell.noise[noise_index], f"noise realization {noise_index}", norm
-            )
-            _colourbar(fig, shown, axes[1], label, norm)
-        else:
-            axes[1].text(0.5, 0.5, "no noise realization", ha="center", transform=axes[1].transAxes)
-        psf = np.clip(cell.psf, cell.psf.max() * 1e-5, None)
-        half = cell.psf.shape[0] // 2
-        shown = _image_axes(
-            axes[2],
-            np.log10(psf),
-            "PSF at the cell centre",
-            cmap="viridis",
-            extent=(-half - 0.5, half + 0.5, -half - 0.5, half + 0.5),
-        )
-        axes[2].set_xlabel("x offset [pixels]")
-        axes[2].set_ylabel("y offset [pixels]")
-        _colourbar(fig, shown, axes[2], "log10(PSF flux fraction / pixel)")
-        categories, present = _mask_categories(cell.mask, mask_bits or MaskBits())
-        colours: list[str] = ["white", *(_BIT_COLOURS[i % 10] for i in range(len(present)))]
-        axes[3].imshow(
-            categories,
-            origin="lower",
-            cmap=ListedColormap(colours),
-            vmin=-0.5,
-            vmax=len(present) + 0.5,
-            interpolation="nearest",
-        )
-        axes[3].set_title("mask bits", fontsize="medium")
-        handles = [
-            LegendPatch(facecolor=colours[i + 1], edgecolor="k", label=name)
-            for i, name in enumerate(present)
-        ] or [LegendPatch(facecolor="white", edgecolor="k", label="nothing masked")]
-        axes[3].legend(
-            handles=handles,
-            loc="upper center",
-            bbox_to_anchor=(0.5, -0.16),
-            ncols=min(3, len(handles)),
-            fontsize="small",
-            frameon=False,
-        )
-        shown = _image_axes(axes[4], cell.mfrac, "masked fraction", cmap="magma")
-        shown.set_clim(0.0, max(float(np.nanmax(cell.mfrac)), 1e-3))
-        _colourbar(fig, shown, axes[4], "fraction of the pixel's weight masked")
-        inner, outer = cell.inner_bbox, cell.outer_bbox
-        for number, ax in enumerate(axes):
-            if number == 2:
-                continue
-            _sky_axes(ax, dec=number == 0)
-            ax.add_patch(
-                Rectangle(
-                    (inner.x_start - outer.x_start - 0.5, inner.y_start - outer.y_start - 0.5),
-                    inner.nx,
-                    inner.ny,
-                    fill=False,
-                    edgecolor="tab:cyan",
-                    linewidth=0.8,
-                )
-            )
-    used = cell.n_used
-    fig.suptitle(
-        f"cell {cell.index} of tract {cell.tract}: {used} input(s) used, "
-        f"{len(cell.inputs) - used} rejected (cyan: inner region; orange: no data)"
+    figure = cell_planes_figure(
+        cell, mask_bits=mask_bits, noise_index=noise_index, units=units, zero_point=zero_point
     )
-    fig.savefig(path, dpi=80)
-    return os.fspath(path)
+    return style.save(figure, path)
 
 
+@style.styled
 def plot_inputs_map(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
     """Per cell: visits used, and visits rejected because a detector edge crossed the cell.
 
@@ -275,7 +339,7 @@ def plot_inputs_map(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
         used[ys.index(cy), xs.index(cx)] = counts["used"]
         edge[ys.index(cy), xs.index(cx)] = counts["edge"]
     top = max(float(np.nanmax(used + edge)), 1.0)
-    fig = Figure(figsize=(11, 5), layout="constrained")
+    fig = style.figure(11.0, 5.0)
     axes = fig.subplots(1, 2)
     extent = (xs[0] - 0.5, xs[-1] + 0.5, ys[0] - 0.5, ys[-1] + 0.5)
     for ax, values, title, cmap in (
@@ -303,7 +367,7 @@ def plot_inputs_map(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
         y0 = min(i[1] for i in inner) - 0.5
         n = patch.metadata.skymap_config.cells_per_patch
         ax.add_patch(
-            Rectangle((x0, y0), n, n, fill=False, edgecolor="tab:cyan", linestyle="--", lw=2)
+            Rectangle((x0, y0), n, n, fill=False, edgecolor=style.INNER, linestyle="--", lw=2)
         )
         ax.set_title(title)
         ax.set_xlabel("cell x index (tract)")
@@ -312,5 +376,4 @@ def plot_inputs_map(patch: PatchCoadd, path: str | os.PathLike[str]) -> str:
         ax.set_yticks(ys)
         _colourbar(fig, shown, ax, "visits")
     fig.suptitle("inputs per cell (dashed: the patch's inner cells)")
-    fig.savefig(path, dpi=80)
-    return os.fspath(path)
+    return style.save(fig, path)

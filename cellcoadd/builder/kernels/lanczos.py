@@ -24,7 +24,7 @@ from cellcoadd.builder.kernels.descriptor import LANCZOS3
 from cellcoadd.errors import CellCoaddValueError
 
 KERNEL_HALF_WIDTH = LANCZOS3.half_width
-"""Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2 .. floor(x) + 3``."""
+"""Taps reach ``KERNEL_HALF_WIDTH`` pixels each side: ``floor(x) - 2`` to ``floor(x) + 3``."""
 
 N_TAPS = LANCZOS3.taps
 """Taps per axis; numba takes module-level ints as compile-time constants."""

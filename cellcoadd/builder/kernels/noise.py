@@ -212,7 +212,7 @@ def normal_from_word(
 def first_words(
     x_start: int, y: int, n_noise: int, k0: np.uint64, k1: np.uint64, words: np.ndarray
 ) -> None:
-    """First words of realizations ``0 .. n_noise - 1`` at pixels ``x_start + i`` of row
+    """First words of realizations ``0`` to ``n_noise - 1`` at pixels ``x_start + i`` of row
     ``y``, into ``words[r, i]`` for ``i < words.shape[1]``.
 
     A plain loop over independent blocks, which the compiler vectorises: Philox is

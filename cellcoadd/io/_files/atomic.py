@@ -23,6 +23,7 @@ from pathlib import Path
 
 from cellcoadd.errors import CellCoaddFileExistsError, CellCoaddFileNotFoundError
 from cellcoadd.io._files.disk_space import disk_full_error
+from cellcoadd.io._files.path_gate import gate_write
 from cellcoadd.io._files.writeback import EarlyWriteback
 
 
@@ -128,6 +129,7 @@ def atomic_write(
         ``errno.ENOSPC`` when the failure came from a full disk
         (:func:`~cellcoadd.io._files.disk_space.disk_full_error`).
     """
+    gate_write(target)
     target = Path(os.fspath(target))
     if target.exists() and not overwrite:
         raise exists_error(target)

@@ -14,7 +14,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from cellcoadd.errors import CellCoaddError, CellCoaddFileNotFoundError, CellCoaddFormatError
+from cellcoadd.errors import CellCoaddError, CellCoaddFormatError
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 
 #: What the libraries under a reader (fitsio/CFITSIO, h5py/HDF5, numpy, json, astropy,
@@ -86,14 +87,7 @@ def reading_errors(path: str, what: str) -> Iterator[None]:
 
 
 def check_path_readable(path: str) -> int:
-    """Size of ``path`` in bytes; CellCoaddFileNotFoundError if absent, CellCoaddFormatError
-    if empty or not a regular file (a directory, a pipe or a device could block or mislead a
-    reader)."""
-    if not os.path.exists(path):
-        raise CellCoaddFileNotFoundError(f"{path}: no such file", path=path)
-    if not os.path.isfile(path):
-        raise CellCoaddFormatError(path, "not a regular file")
-    size = os.path.getsize(path)
-    if size == 0:
-        raise CellCoaddFormatError(path, "the file is empty")
-    return size
+    """Size of ``path`` in bytes; FileNotFoundError if absent, CellCoaddFormatError if empty
+    or not a regular file (a directory, a pipe or a device could block or mislead a reader;
+    :func:`~cellcoadd.io._files.path_gate.gate_read`)."""
+    return os.path.getsize(gate_read(path))

@@ -10,29 +10,44 @@ CFITSIO gives meaning to parts of a file name: a leading ``!`` (overwrite), ``-`
 from __future__ import annotations
 
 import os
+import re
 
 from cellcoadd.errors import CellCoaddValueError
+
+#: ``name+N``: CFITSIO opens HDU ``N`` of ``name`` (``e.fits+1`` reads ``e.fits``).
+_HDU_SUFFIX = re.compile(r"\+\d+\s*$")
+
+
+def cfitsio_syntax(name: str) -> str | None:
+    """Why CFITSIO would not read ``name`` literally as a file name, or None.
+
+    Covers ``name[filter]``, ``name(template)``, ``scheme://`` (``mem://``, URLs), the
+    ``name+N`` HDU suffix and trailing blanks (stripped). A leading ``!``, ``-`` or blank
+    is made harmless by :func:`cfitsio_path` (or by passing an absolute path).
+    """
+    if any(char in name for char in "[]()"):
+        return "'[', ']', '(' and ')' are CFITSIO extended file-name syntax"
+    if "://" in name:
+        return "'scheme://' is CFITSIO extended file-name syntax (mem://, URLs)"
+    if _HDU_SUFFIX.search(name):
+        return "a '+N' suffix is CFITSIO syntax for HDU N of another file"
+    if name != name.rstrip():
+        return "CFITSIO strips trailing blanks from file names"
+    return None
 
 
 def check_fits_path(path: str | os.PathLike[str]) -> str:
     """Refuse paths that CFITSIO would parse as extended file-name syntax, not as a file.
 
-    CFITSIO reads ``name(template)``, ``name[filter]`` and ``scheme://`` specially and
-    strips trailing blanks (it would silently write or read a different file), so such
-    FITS paths raise ValueError. A leading ``!`` or blank is made harmless by
+    See :func:`cfitsio_syntax` (CFITSIO would silently write or read a different file),
+    so such FITS paths raise ValueError. A leading ``!`` or blank is made harmless by
     :func:`cfitsio_path` instead.
     """
     name = os.fspath(path)
-    if any(char in name for char in "[]()") or "://" in name:
+    reason = cfitsio_syntax(name)
+    if reason is not None:
         raise CellCoaddValueError(
-            f"{name}: FITS paths must not contain '[', ']', '(', ')' or '://' "
-            "(CFITSIO would read them as extended file-name syntax)",
-            path=name,
-            value=name,
-        )
-    if name != name.rstrip():
-        raise CellCoaddValueError(
-            f"{name!r}: FITS paths must not end with blanks (CFITSIO strips them)",
+            f"{name!r}: FITS paths must be read literally by CFITSIO: {reason}",
             path=name,
             value=name,
         )

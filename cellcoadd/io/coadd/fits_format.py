@@ -11,15 +11,25 @@ of its data unit as stored (see :mod:`cellcoadd.io._fits.checksums`), all verifi
 when ``verify`` is true.
 
 With lossless compression (each plane's :attr:`~cellcoadd.model.planes.PlaneSpec.compression`)
-the float32 planes are tile-compressed (GZIP_2) as int32 images
-holding their IEEE-754 bit patterns (keyword ``CCBITS = 'FLOAT32'``): CFITSIO replaces every
-non-finite float by one NaN when tile-compressing floats, which would lose infinities and
-NaN payloads. The mask is RICE_1 compressed; the float64 PSF, the tables and the metadata
-are never compressed.
+the float32 planes are tile-compressed as floats with GZIP_2 and no quantization
+(``ZQUANTIZ = 'NONE'``), so FITS viewers and readers decode them to the very floats, in
+``BUNIT``. CFITSIO writes every non-finite value of such a plane as one NaN bit pattern
+(0xFFFFFFFF); the pixels whose bits were different (infinities, NaN payloads, the usual
+quiet NaN) are listed in the header, ``CCNFNUM`` of them in ``CCNFBITS`` (base64 of the
+zlib-compressed little-endian uint32 position steps, in C order, then their uint32 bit
+patterns), and put back on reading: the round trip is bit for bit. Files written before
+stored those planes as int32 bit patterns with ``CCBITS = 'FLOAT32'``, still read. The mask
+is RICE_1 compressed; the float64 PSF, the tables and the metadata are never compressed.
+
+Every HDU of a plane on the cell's pixel grid (image, mask, variance, noise, mfrac) carries
+the cell's WCS cards, so viewers place each of them on the sky (the noise cube's third
+axis is the realization).
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import zlib
 from typing import Any, BinaryIO
 
@@ -227,8 +237,8 @@ class _CfitsioHdus:
     def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
         compression = cell_planes.plane(plane).compression if self.compress else "none"
         if compression == "float_bits":
-            keys = [*keys, {"name": "CCBITS", "value": "FLOAT32", "comment": "int32 = bits"}]
-            _write_image(self.fits, data.view(np.int32), name, keys, compress="GZIP_2")
+            keys = [*keys, *_nonfinite_keys(data)]
+            _write_image(self.fits, data, name, keys, compress="GZIP_2")
         elif compression == "integer":
             _write_image(self.fits, data, name, keys, compress="RICE_1")
         else:
@@ -238,6 +248,59 @@ class _CfitsioHdus:
         self.fits.write(table, extname=name)
         self.fits[-1].write_keys([*keys, DATACRC_PLACEHOLDER])
         self.fits[-1].write_checksum()
+
+
+#: The one bit pattern CFITSIO writes for every non-finite value of a compressed float plane.
+_CFITSIO_NAN = np.uint32(0xFFFFFFFF)
+
+
+def _nonfinite_keys(data: np.ndarray) -> list[dict[str, Any]]:
+    """``CCNFNUM``/``CCNFBITS`` listing the pixels CFITSIO's float compression would change
+    (non-finite values other than its own NaN); none when there are none."""
+    values = np.ascontiguousarray(data, dtype=np.float32).reshape(-1)
+    bits = values.view(np.uint32)
+    where = np.flatnonzero(~np.isfinite(values) & (bits != _CFITSIO_NAN))
+    if where.size == 0:
+        return []
+    steps = np.diff(where, prepend=0).astype("<u4")  # mostly 1 in NaN regions: compresses
+    payload = zlib.compress(steps.tobytes() + bits[where].astype("<u4").tobytes(), 9)
+    return [
+        {"name": "CCNFNUM", "value": int(where.size), "comment": "non-finite pixels restored"},
+        {"name": "CCNFBITS", "value": base64.b64encode(payload).decode("ascii")},
+    ]
+
+
+def _restore_nonfinite(data: np.ndarray, header: Any, path: str, context: str) -> np.ndarray:
+    """Put back the bit patterns listed by :func:`_nonfinite_keys`.
+
+    Raises ``CellCoaddFormatError`` naming ``path`` and ``context`` (the cell and plane)
+    when the list is corrupt or does not fit the plane.
+    """
+
+    def fail(problem: str) -> CellCoaddFormatError:
+        return CellCoaddFormatError(path, f"{context}: {problem}")
+
+    count = header.get("CCNFNUM")
+    if count is None:
+        return data
+    if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= data.size:
+        raise fail(f"CCNFNUM = {count!r}")
+    try:
+        raw = zlib.decompress(base64.b64decode(str(header.get("CCNFBITS", "")), validate=True))
+    except (binascii.Error, zlib.error) as err:
+        raise fail(f"CCNFBITS cannot be decoded: {err}") from None
+    if len(raw) != 8 * count:
+        raise fail(f"CCNFBITS holds {len(raw)} bytes, expected {8 * count}")
+    where = np.cumsum(np.frombuffer(raw[: 4 * count], dtype="<u4").astype(np.int64))
+    restored = np.frombuffer(raw[4 * count :], dtype="<u4")
+    out = np.array(data, dtype=np.float32, copy=True).reshape(-1)
+    bits = out.view(np.uint32)
+    if where[-1] >= out.size or np.any(np.diff(where) <= 0) or np.any(bits[where] != _CFITSIO_NAN):
+        raise fail("CCNFBITS lists pixels that are not the compressed NaNs")
+    if np.any(np.isfinite(restored.view(np.float32))):
+        raise fail("CCNFBITS restores finite values")
+    bits[where] = restored
+    return out.reshape(data.shape)
 
 
 def _write_cell(
@@ -261,8 +324,9 @@ def _write_cell(
             {"name": key, "value": value, "comment": comment}
             for key, value, comment in (plane_cards or {}).get(plane, [])
         ]
-        if plane == "image":
-            # Standard WCS cards so viewers can place the image; the exact WCS is in CELLINDEX.
+        if cell_planes.plane(plane).on_cell_grid:
+            # Standard WCS cards so viewers can place every pixel plane; the exact WCS is in
+            # CELLINDEX.
             plane_keys += _wcs_cards(cell, records)
         hdus.image(plane, getattr(cell, plane), name, plane_keys)
 
@@ -447,7 +511,8 @@ class FitsCoaddFile(CoaddFile):
             planes[spec.name] = self._read_plane(key, spec.name, number, shapes[spec.name])
         inputs = self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))
         with reading_errors(self.path, f"cell {key} contents"):
-            return CellCoadd(**planes, inputs=inputs, **identity)
+            common = self.metadata.cell_common  # a cell read alone describes itself
+            return CellCoadd(**planes, inputs=inputs, **identity, common=common)
 
     def _read_plane(
         self, key: tuple[int, int], plane: str, number: int, shape: tuple[int, ...]
@@ -457,7 +522,8 @@ class FitsCoaddFile(CoaddFile):
             dims = tuple(hdu.get_dims())
             if dims != shape:
                 raise DamagedDataError(f"dimensions {dims}, expected {shape}", cell=key)
-            as_bits = hdu.read_header().get("CCBITS") == "FLOAT32"
+            header = hdu.read_header()
+            as_bits = header.get("CCBITS") == "FLOAT32"  # files before float compression
             data = hdu.read()
             spec = cell_planes.plane(plane)
             expected = spec.dtype
@@ -466,6 +532,15 @@ class FitsCoaddFile(CoaddFile):
                     raise DamagedDataError(f"CCBITS on a {data.dtype} {plane} plane", cell=key)
                 # Native byte order first, then reinterpret the bits.
                 data = data.astype(np.int32, copy=False).view(np.float32)
+            elif "CCNFNUM" in header:
+                where = f"cell {key} plane {plane}"
+                if spec.compression != "float_bits" or data.dtype.kind != "f":
+                    raise CellCoaddFormatError(
+                        self.path, f"{where}: CCNFNUM on a {data.dtype} plane"
+                    )
+                data = _restore_nonfinite(
+                    data.astype(np.float32, copy=False), header, self.path, where
+                )
             if (data.dtype.kind, data.itemsize) != (expected.kind, expected.itemsize):
                 raise DamagedDataError(f"dtype {data.dtype}, expected {expected}", cell=key)
             return data

@@ -396,7 +396,8 @@ class Hdf5CoaddFile(CoaddFile):
                 planes[plane] = dataset[()]
         inputs = self._read_inputs(key, group)
         with reading_errors(self.path, f"cell {key} contents"):
-            return CellCoadd(**planes, inputs=inputs, **identity)
+            common = self.metadata.cell_common  # a cell read alone describes itself
+            return CellCoadd(**planes, inputs=inputs, **identity, common=common)
 
     def _read_inputs(self, key: tuple[int, int], group: h5py.Group) -> list[InputRecord]:
         with reading_errors(self.path, f"cell {key} inputs"):

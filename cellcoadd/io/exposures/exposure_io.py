@@ -51,6 +51,7 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
+from cellcoadd.io._files.path_gate import gate_read, gate_write
 from cellcoadd.io._files.read_checks import is_file_failure
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import (
@@ -94,6 +95,7 @@ def write_exposure(
     OSError
         ``errno.ENOSPC`` when the file does not fit on the disk; nothing is left behind.
     """
+    gate_write(path, what="exposure file", fits=True)
     target = Path(path)
     if target.exists() and not overwrite:
         raise exists_error(target)
@@ -180,7 +182,11 @@ def write_exposure(
 
 
 def read_exposure(
-    path: str | os.PathLike[str], box: Box | None = None, *, wcs: WCS | None = None
+    path: str | os.PathLike[str],
+    box: Box | None = None,
+    *,
+    wcs: WCS | None = None,
+    trust_psf: bool = False,
 ) -> Exposure:
     """Read an exposure written by :func:`write_exposure`, or its cutout over ``box``.
 
@@ -197,6 +203,9 @@ def read_exposure(
         The file's WCS as :func:`read_exposure_header` returned it (canonical), used
         instead of parsing the header again (saves ~6 ms); its CRPIX and CRVAL are
         checked against the file's. The result is the same.
+    trust_psf : bool
+        Allow a stored Piff model: it holds pickled objects, which run code when loaded
+        (:func:`cellcoadd.io.read_piff`). Only for files you trust.
 
     Raises
     ------
@@ -205,7 +214,7 @@ def read_exposure(
         inconsistent file, or one of another kind, or a ``wcs`` of another file; never
         another exception type.
     """
-    return _with_file(path, lambda fits_file, raw: _read(fits_file, raw, box, wcs))
+    return _with_file(path, lambda fits_file, raw: _read(fits_file, raw, box, wcs, trust_psf))
 
 
 def read_exposure_header(path: str | os.PathLike[str]) -> ExposureHeader:
@@ -216,17 +225,18 @@ def read_exposure_header(path: str | os.PathLike[str]) -> ExposureHeader:
 
 
 def _with_file(path: str | os.PathLike[str], read: Callable[[fitsio.FITS, BinaryIO], T]) -> T:
-    if os.path.exists(path) and not os.path.isfile(path):
-        # a directory, pipe or device: CFITSIO could block on it
-        raise CellCoaddFormatError(path, "not a regular file")
+    # no CFITSIO syntax, a regular file (a directory, pipe or device could block CFITSIO)
+    try:
+        resolved = gate_read(path, what="exposure file", fits=True)
+    except FileNotFoundError:
+        raise CellCoaddFormatError(path, "no such exposure file") from None
     # start and leave with an empty CFITSIO message stack (see cellcoadd.io.api.open)
     clear_cfitsio_messages()
     try:
-        name = cfitsio_path(path)
-        if not starts_like_fits(path):
+        if not starts_like_fits(resolved):
             # CFITSIO would first inflate a gzip (or compress, bzip2) stream into memory
             raise _fail("not a FITS file (it does not start with SIMPLE)")
-        with fitsio.FITS(name) as fits_file, open(path, "rb") as raw:
+        with fitsio.FITS(resolved) as fits_file, open(resolved, "rb") as raw:
             return read(fits_file, raw)
     except CellCoaddFormatError as err:
         raise CellCoaddFormatError(path, err.problem) from None
@@ -302,7 +312,11 @@ def _header(fits_file: fitsio.FITS, raw: BinaryIO) -> ExposureHeader:
 
 
 def _read(
-    fits_file: fitsio.FITS, raw: BinaryIO, box: Box | None = None, wcs: WCS | None = None
+    fits_file: fitsio.FITS,
+    raw: BinaryIO,
+    box: Box | None = None,
+    wcs: WCS | None = None,
+    trust_psf: bool = False,
 ) -> Exposure:
     """The exposure in ``fits_file`` (its cutout over ``box``); ``raw`` is the same file,
     for the checksums; ``wcs`` its canonical WCS if already read."""
@@ -346,7 +360,7 @@ def _read(
         wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start, from_canonical=True),
         wcs_is_canonical=True,
         variance=variance,
-        psf=read_psf(meta["psf"], psf_array),
+        psf=read_psf(meta["psf"], psf_array, trusted=trust_psf),
         visit=int(meta["visit"]),
         detector=int(meta["detector"]),
         band=meta["band"],

@@ -22,15 +22,16 @@ PIXGRID   ``CallablePsf(includes_pixel=True)``: as GRID, the      ``CallablePsf(
           added); META ``includes_pixel: true``
 IMAGE     a ``galsim.Image`` / ``ImagePsf``: the stamp (dtype     a bit-identical Image
           as given)
-PSFEX     ``PsfexPsf``: uint8 copy of the ``.psf`` file's bytes;  ``PsfexPsf(data=...)``
-          META ``sha256``, ``file_name``
-PIFF      ``PiffPsf``: uint8 copy of the Piff file's bytes; META  ``PiffPsf(data=...,
-          ``sha256``, ``file_name``, ``chipnum``, ``origin``      chipnum=, origin=)``
+PSFEX     ``PsfexPsf``: uint8 copy of the ``.psf`` file's bytes;  ``parse_psfex(bytes)``
+          META ``sha256``, ``file_name``                          (parsed whole)
+PIFF      ``PiffPsf``: uint8 copy of the Piff file's bytes; META  ``parse_piff(bytes,
+          ``sha256``, ``file_name``, ``chipnum``, ``origin``      trusted=...)``: only
+                                                                  with ``trust_psf``
 ========  ======================================================  =======================
 
-A stored model file whose SHA-256 differs from the one in META is refused. Piff is
-imported only when a ``PiffPsf`` is drawn, so an exposure file with a Piff PSF opens
-without Piff installed.
+A stored model file whose SHA-256 differs from the one in META is refused. A stored
+model file is parsed whole when the exposure is read; a Piff model (pickled objects) is
+loaded only when the reader is given ``trust_psf=True``, and refused otherwise.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import numpy as np
 from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, PsfError
 from cellcoadd.io._fits.wcs_header import as_float
 from cellcoadd.io.exposures.psf_codec import can_encode, decode_psf, encode_psf
+from cellcoadd.io.exposures.psf_files import parse_piff, parse_psfex
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PiffPsf, PsfexPsf
 from cellcoadd.model.psf_profiles import GridPsf, VaryingPsf
@@ -158,8 +160,10 @@ def _typical_scale(exposure: Exposure) -> float:
     return float(np.sqrt(abs(np.linalg.det(jac))))
 
 
-def read_psf(desc: Any, array: np.ndarray | None) -> Any:
+def read_psf(desc: Any, array: np.ndarray | None, *, trusted: bool = False) -> Any:
     """The PSF described by META ``desc``, with the ``PSF`` HDU ``array`` when it has one.
+
+    A stored Piff model is loaded only when ``trusted`` (it holds pickled objects).
 
     Raises
     ------
@@ -198,7 +202,7 @@ def read_psf(desc: Any, array: np.ndarray | None) -> Any:
             raise _fail("a PSF of kind 'pixel_grid' must have includes_pixel true")
         return CallablePsf(_read_grid(desc, array), includes_pixel=True)
     if kind in ("psfex", "piff"):
-        return _read_file_model(kind, desc, array)
+        return _read_file_model(kind, desc, array, trusted)
     raise _fail(f"unknown PSF kind {kind!r}")
 
 
@@ -213,7 +217,9 @@ def _read_grid(desc: dict[str, Any], array: np.ndarray) -> GridPsf:
     )
 
 
-def _read_file_model(kind: str, desc: dict[str, Any], array: np.ndarray) -> PsfexPsf | PiffPsf:
+def _read_file_model(
+    kind: str, desc: dict[str, Any], array: np.ndarray, trusted: bool
+) -> PsfexPsf | PiffPsf:
     """The stored copy of a PSFEx or Piff model file, checked against its SHA-256."""
     name = desc.get("file_name")
     expected = desc.get("sha256")
@@ -231,19 +237,21 @@ def _read_file_model(kind: str, desc: dict[str, Any], array: np.ndarray) -> Psfe
             f"HDU PSF: the stored copy of the {label} is damaged or altered: its SHA-256 is "
             f"{actual}, META records {expected}"
         )
-    model: PsfexPsf | PiffPsf
-    if kind == "psfex":
-        model = PsfexPsf(data=data)
-    else:
+    # the model names its file, as the original did (and is stored again under that name)
+    source = name if name else _NO_FILE
+    try:
+        if kind == "psfex":
+            return parse_psfex(data, source)
         chipnum, origin = desc.get("chipnum"), desc.get("origin")
         if chipnum is not None and (isinstance(chipnum, bool) or not isinstance(chipnum, int)):
             raise _fail("META psf chipnum must be an integer or null")
         if isinstance(origin, bool) or not isinstance(origin, int) or origin not in (0, 1):
             raise _fail("META psf origin must be 0 or 1")
-        model = PiffPsf(data=data, chipnum=chipnum, origin=origin)
-    if name:
-        model.source = name  # error messages name the model file, as for the original
-    return model
+        return parse_piff(data, source, trusted=trusted, chipnum=chipnum, origin=origin)
+    except CellCoaddFormatError as err:
+        if not err.path:
+            raise
+        raise _fail(f"HDU PSF: the stored {label}: {err.problem}") from None
 
 
 def _fail(problem: str) -> CellCoaddFormatError:

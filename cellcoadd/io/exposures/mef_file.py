@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import fitsio
@@ -13,9 +12,17 @@ import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
+from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.headers import read_header
-from cellcoadd.io._fits.paths import cfitsio_path, starts_like_fits
+from cellcoadd.io._fits.paths import starts_like_fits
 from cellcoadd.io.exposures.mef_layout import HduRef
+
+#: Most pixels a plane of a survey exposure file may declare (8192 x 8192; an LSST
+#: detector is 4072 x 4000, a DECam CCD 4096 x 2048).
+MAX_DETECTOR_PIXELS = 8192 * 8192
+#: Most bytes a plane may declare per byte it stores (compression ratio; lossless
+#: compression of sky images stays far below it, a constant plane reaches ~1000).
+MAX_INFLATION = 1100
 
 
 class MefFile:
@@ -69,10 +76,38 @@ class MefFile:
         raise CellCoaddFormatError(self.path, f"no {what} HDU {ref!r} (HDUs: {names})")
 
     def dims(self, index: int, what: str) -> tuple[int, int]:
+        """The plane's (ny, nx), checked against the file before any pixel is read."""
         dims: tuple[int, ...] = tuple(int(d) for d in self.fits[index].get_dims())
         if self.fits[index].get_exttype() != "IMAGE_HDU" or len(dims) != 2 or 0 in dims:
             raise self.fail(index, f"the {what} is not a 2-D image (dimensions {dims})")
+        self._check_declared_size(index, what, dims)
         return (dims[0], dims[1])
+
+    def _check_declared_size(self, index: int, what: str, dims: tuple[int, ...]) -> None:
+        """CFITSIO allocates what a header declares (a tile-compressed plane is inflated
+        whole on a full read): bound it by :data:`MAX_DETECTOR_PIXELS` and by
+        :data:`MAX_INFLATION` times the bytes the HDU stores."""
+        pixels = int(np.prod(dims, dtype=np.float64))
+        if pixels > MAX_DETECTOR_PIXELS:
+            raise self.fail(
+                index,
+                f"the {what} declares {dims[1]} x {dims[0]} pixels, more than the "
+                f"{MAX_DETECTOR_PIXELS} of a detector image accepted",
+            )
+        header = self.header(index)
+        bitpix = header.get("ZBITPIX", header.get("BITPIX", 8))
+        if isinstance(bitpix, bool) or not isinstance(bitpix, int) or bitpix == 0:
+            raise self.fail(index, f"the {what} has BITPIX {bitpix!r}")
+        declared = pixels * abs(bitpix) // 8
+        offsets = self.fits[index].get_offsets()
+        size = os.fstat(self.descriptor).st_size if self.descriptor is not None else 0
+        stored = max(0, min(int(offsets["data_end"]), size) - int(offsets["data_start"]))
+        if declared > MAX_INFLATION * stored + 2880:
+            raise self.fail(
+                index,
+                f"the {what} declares {dims[1]} x {dims[0]} pixels ({declared} bytes) but "
+                f"stores {stored} bytes (more than {MAX_INFLATION}:1; truncated or forged?)",
+            )
 
     def pixels(self, index: int, box: Box, what: str) -> np.ndarray:
         try:
@@ -89,20 +124,27 @@ class MefFile:
 def open_mef(path: str) -> Iterator[MefFile]:
     """``with open_mef(path) as mef``: the :class:`MefFile` of ``path``, open for the block.
 
+    ``path`` passes the path gate (:mod:`cellcoadd.io._files.path_gate`) and must start
+    like a FITS file before CFITSIO opens it.
+
     Raises
     ------
     CellCoaddFormatError
         When ``path`` is not a file or not a readable FITS file.
     """
-    if not Path(path).is_file():
-        raise CellCoaddFormatError(path, "no such file")
+    try:
+        resolved = gate_read(path, what="exposure file", fits=True)
+    except FileNotFoundError:
+        raise CellCoaddFormatError(path, "no such file") from None
+    if not starts_like_fits(resolved):
+        # CFITSIO would inflate a gzip (or compress, bzip2) stream into memory first
+        raise CellCoaddFormatError(path, "not a FITS file (it does not start with SIMPLE)")
     fits_file: Any = None
     descriptor: int | None = None
     try:
         try:
-            fits_file = fitsio.FITS(cfitsio_path(path))
-            if starts_like_fits(path):  # not inflated by CFITSIO: its bytes are the HDUs
-                descriptor = os.open(path, os.O_RDONLY)
+            descriptor = os.open(resolved, os.O_RDONLY)
+            fits_file = fitsio.FITS(resolved)
         except (OSError, ValueError) as err:
             raise CellCoaddFormatError(path, f"not a readable FITS file ({err})") from None
         yield MefFile(path, fits_file, descriptor)

@@ -14,7 +14,8 @@ Two layouts are provided:
     ``IMAGE``, ``MASK`` and ``VARIANCE`` HDUs (``EXTNAME`` and ``EXTTYPE``), each with the
     TAN-SIP WCS; mask planes named by ``MP_<NAME> = bit`` keywords of the mask header;
     identity from the Butler's ``LSST BUTLER DATAID VISIT/DETECTOR/BAND`` keywords;
-    calibration from ``FLUXMAG0`` (older ``calexp``) or ``BUNIT = 'nJy'`` (``visit_image``).
+    calibration from ``FLUXMAG0`` (older ``calexp``), the ``PhotoCalib`` of the afw archive
+    (``PHOTOCALIB_ID``; current files) or ``BUNIT = 'nJy'`` (``visit_image``).
     The PSF (an afw archive HDU) and the exact WCS (an AST archive; the header's TAN-SIP is
     an approximation) are not readable without the pipelines: give the PSF separately.
 ``DES_LAYOUT``
@@ -37,12 +38,25 @@ from cellcoadd.errors import (
     CellCoaddRangeError,
     CellCoaddValueError,
 )
+from cellcoadd.model.mask_presets import DES_BAD_MASK_BITS, LSST_BAD_MASK_BITS
 from cellcoadd.model.units import NJY_ZERO_POINT  # AB magnitude of 1 nJy (31.4)
 
 #: HDU given by EXTNAME (or EXTTYPE; case-insensitive) or by number (0 = primary).
 HduRef = str | int
 
-ZeroPointKind = Literal["mag", "fluxmag0", "bunit"]
+ZeroPointKind = Literal["mag", "fluxmag0", "bunit", "photocalib"]
+
+__all__ = [
+    "DES_BAD_MASK_BITS",
+    "DES_LAYOUT",
+    "DES_MASK_VALUES",
+    "LSST_BAD_MASK_BITS",
+    "LSST_LAYOUT",
+    "MefLayout",
+    "ZeroPointKey",
+    "bits_from_values",
+    "zero_point_from",
+]
 
 
 class ZeroPointKey(BaseModel):
@@ -50,7 +64,9 @@ class ZeroPointKey(BaseModel):
 
     ``kind``: ``"mag"`` (the value is the zero point, e.g. ``MAGZERO``), ``"fluxmag0"``
     (counts of a magnitude-0 source: zero point ``2.5 log10(value)``) or ``"bunit"`` (the
-    pixel unit; ``'nJy'`` means zero point 31.4, any other unit gives nothing).
+    pixel unit; ``'nJy'`` means zero point 31.4, any other unit gives nothing) or
+    ``"photocalib"`` (the keyword is the id of a ``PhotoCalib`` in the file's afw archive,
+    :mod:`cellcoadd.io.exposures.lsst_photocalib`; read by the file reader).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -60,7 +76,20 @@ class ZeroPointKey(BaseModel):
 
 
 def zero_point_from(kind: ZeroPointKind, value: object) -> float | None:
-    """The zero point a header value gives, or None when it gives none."""
+    """The zero point a header value gives, or None when it gives none (always for
+    ``"photocalib"``, which needs the file).
+
+    Examples
+    --------
+    >>> zero_point_from("mag", 30.25)  # MAGZERO
+    30.25
+    >>> round(zero_point_from("fluxmag0", 10 ** (0.4 * 28.7)), 9)  # FLUXMAG0
+    28.7
+    >>> zero_point_from("bunit", "nJy") == NJY_ZERO_POINT, zero_point_from("bunit", "adu")
+    (True, None)
+    """
+    if kind == "photocalib":
+        return None
     if kind == "bunit":
         if isinstance(value, str) and value.strip().lower() == "njy":
             return NJY_ZERO_POINT
@@ -182,24 +211,6 @@ DES_MASK_VALUES: dict[str, int] = {
     "BADPIX_TAPEBUMP": 16384,
 }
 
-#: ``BuildConfig.bad_mask_bits`` recommended for DES files: the bits DES nulls in the weight
-#: maps (Y3 practice, as in pizza-cutter) plus saturation and zero weight.
-DES_BAD_MASK_BITS: tuple[str, ...] = (
-    "BADPIX_BPM",
-    "BADPIX_SATURATE",
-    "BADPIX_BADAMP",
-    "BADPIX_CRAY",
-    "BADPIX_TRAIL",
-    "BADPIX_EDGEBLEED",
-    "BADPIX_SSXTALK",
-    "BADPIX_EDGE",
-    "BADPIX_STREAK",
-    "ZERO_WEIGHT",
-)
-
-#: ``BuildConfig.bad_mask_bits`` recommended for LSST files (``NO_DATA``, as always).
-LSST_BAD_MASK_BITS: tuple[str, ...] = ("BAD", "SAT", "CR", "EDGE", "NO_DATA")
-
 LSST_LAYOUT = MefLayout(
     name="lsst",
     image_hdu="IMAGE",
@@ -208,6 +219,7 @@ LSST_LAYOUT = MefLayout(
     mask_bits=None,  # MP_<NAME> keywords
     zero_point_keys=(
         ZeroPointKey(keyword="FLUXMAG0", kind="fluxmag0"),
+        ZeroPointKey(keyword="PHOTOCALIB_ID", kind="photocalib"),
         ZeroPointKey(keyword="BUNIT", kind="bunit"),
     ),
     visit_keys=("LSST BUTLER DATAID VISIT", "VISIT", "EXPID"),

@@ -27,30 +27,28 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, ExposureError, PsfError
+from cellcoadd.errors import CellCoaddFormatError, CellCoaddTypeError, ExposureError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._files.read_checks import is_file_failure
 from cellcoadd.io._fits.wcs_header import WCS_KEYWORD
+from cellcoadd.io.exposures.lsst_photocalib import photocalib_zero_point
 from cellcoadd.io.exposures.mef_file import MefFile, open_mef
 from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT, MefLayout, zero_point_from
+from cellcoadd.io.exposures.psf_files import read_psf_file
 from cellcoadd.model.exposure import Exposure, PsfLike
 from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.psf import PiffPsf, PsfexPsf
 from cellcoadd.model.sources import ExposureHeader, ExposureSource, cutout_box
 
 PathLike = str | os.PathLike[str]
 
 
-def psf_from(psf: PsfLike | PathLike) -> PsfLike:
-    """A PSF model from a path (``.psf``: PSFEx, anything else: Piff); others as given."""
+def psf_from(psf: PsfLike | PathLike, *, trust_psf: bool = False) -> PsfLike:
+    """A PSF model from a path (PSFEx or Piff, by content; Piff only with ``trust_psf``,
+    see :mod:`cellcoadd.io.exposures.psf_files`); other forms as given."""
     if not isinstance(psf, (str, os.PathLike)):
         return psf
-    path = os.fspath(psf)
-    try:
-        return PsfexPsf(path) if path.lower().endswith(".psf") else PiffPsf(path)
-    except PsfError as err:
-        raise CellCoaddFormatError(path, f"cannot read the PSF model ({err})") from None
+    return read_psf_file(psf, trusted=trust_psf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +84,21 @@ def _astropy_header(header: fitsio.FITSHDR, shape: tuple[int, int]) -> fits.Head
     return out
 
 
+#: Highest SIP polynomial order accepted: astropy allocates (order + 1)^2 coefficients
+#: per polynomial (A_ORDER = 100000 asks for 75 GB); survey WCSs use at most ~9.
+MAX_SIP_ORDER = 20
+
+
 def _wcs(path: str, header: fits.Header, what: str) -> WCS:
+    for key in ("A_ORDER", "B_ORDER", "AP_ORDER", "BP_ORDER"):
+        if key in header:
+            order = header[key]
+            if isinstance(order, bool) or not isinstance(order, int):
+                raise CellCoaddFormatError(path, f"{what}: {key} = {order!r} is not an integer")
+            if not 0 <= order <= MAX_SIP_ORDER:
+                raise CellCoaddFormatError(
+                    path, f"{what}: {key} = {order} is outside 0..{MAX_SIP_ORDER}"
+                )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -111,9 +123,9 @@ class MefExposureFile(ExposureSource):
         Where things are (:data:`~cellcoadd.io.exposures.mef_layout.LSST_LAYOUT`,
         :data:`~cellcoadd.io.exposures.mef_layout.DES_LAYOUT` or your own).
     psf : PsfModel, other PSF form of Exposure, or path
-        The PSF model; a path ending in ``.psf`` is read as a PSFEx model, any other path
-        as a Piff model (read now: errors come early, and the model's bytes travel with
-        the source).
+        The PSF model; a path is read now as a PSFEx or Piff model file, recognised by its
+        content (:func:`cellcoadd.io.read_psf_file`): errors come early, and the parsed
+        model travels with the source.
     zero_point : float, optional
         Used when no keyword of ``layout.zero_point_keys`` gives one.
     background : path-like, optional
@@ -122,6 +134,9 @@ class MefExposureFile(ExposureSource):
         Identity, instead of the header's.
     band : str, optional
         Band, instead of the header's.
+    trust_psf : bool
+        Allow a ``psf`` path to be a Piff file, which holds pickled objects that run code
+        when loaded: only for files you trust.
     """
 
     def __init__(
@@ -135,6 +150,7 @@ class MefExposureFile(ExposureSource):
         visit: int | None = None,
         detector: int | None = None,
         band: str | None = None,
+        trust_psf: bool = False,
     ):
         if not isinstance(layout, MefLayout):
             raise CellCoaddTypeError(
@@ -142,7 +158,7 @@ class MefExposureFile(ExposureSource):
             )
         self.path = os.fspath(path)
         self.layout = layout
-        self.psf = psf_from(psf)
+        self.psf = psf_from(psf, trust_psf=trust_psf)
         self.zero_point = zero_point
         self.background = os.fspath(background) if background is not None else None
         self.visit = visit
@@ -184,13 +200,16 @@ class MefExposureFile(ExposureSource):
                 background = headers.pixels(meta.background, cut, "background")
             if not np.issubdtype(mask.dtype, np.integer):
                 raise headers.fail(meta.mask, f"the mask must be integer, got {mask.dtype}")
-            mask = mask.astype(np.int32)
             names = meta.header.mask_bits
-            unknown = names.unknown_bits(mask)
+            # before narrowing to int32: bits above 31 of a wider mask would vanish
+            unknown = names.unknown_bits(mask.astype(np.int64, copy=False))
             if unknown:
                 raise headers.fail(
-                    meta.mask, f"mask bits {unknown:#x} have no name (named: {sorted(names.bits)})"
+                    meta.mask,
+                    f"mask bits {unknown & 0xFFFFFFFFFFFFFFFF:#x} have no name "
+                    f"(named: {sorted(names.bits)})",
                 )
+            mask = mask.astype(np.int32)
         if self.background is not None:
             with open_mef(self.background) as bkg:
                 index = self._background_index(bkg, meta.header.shape)
@@ -326,11 +345,24 @@ class MefExposureFile(ExposureSource):
 
     def _zero_point(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
         for key in self.layout.zero_point_keys:
-            for _, header in searched:
+            for index, header in searched:
                 if key.keyword in header:
-                    value = zero_point_from(key.kind, header[key.keyword])
+                    raw = header[key.keyword]
+                    if key.kind == "photocalib":  # an object in the file's afw archive
+                        value = photocalib_zero_point(headers, key.keyword) if index == 0 else None
+                    else:
+                        value = zero_point_from(key.kind, raw)
                     if value is not None:
                         return value
+                    # BUNIT may name another unit, and only the primary header's PhotoCalib
+                    # reference is read: no zero point from these, and no error
+                    if key.kind not in ("bunit", "photocalib"):
+                        # present but unusable: never fall back to zero_point= silently
+                        raise headers.fail(
+                            index,
+                            f"{key.keyword} = {raw!r} is not a usable zero point (a finite "
+                            f"number{', positive' if key.kind == 'fluxmag0' else ''} is needed)",
+                        )
         if self.zero_point is not None:
             return float(self.zero_point)
         keys = [key.keyword for key in self.layout.zero_point_keys]

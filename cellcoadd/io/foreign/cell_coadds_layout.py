@@ -4,8 +4,11 @@ See ``docs/format.md`` ("LSST cell_coadds layout") for the layout as read and wr
 In short: a primary HDU holding only the tract WCS; an unnamed binary table with one row
 per cell (grid-local ``cell_id`` and the outer-box planes ``image``, ``mask``,
 ``variance``, ``psf``, ``maskfrac``, ``noise_00``...) whose header carries the grid and
-identity keywords; tables ``CELL`` (the inputs used by each cell), ``VISIT``, ``MASKDEF``
-and ``VISIT_SUMMARY``. Every HDU has CHECKSUM/DATASUM.
+identity keywords; tables ``CELL`` (the inputs used by each cell), ``VISIT``, ``MASKDEF``,
+``VISIT_SUMMARY`` and ``APCORR`` (per-cell aperture corrections: none here, so only the
+cell ``x``, ``y`` columns). Every HDU has CHECKSUM/DATASUM. The cell table header also
+carries ``MAGZERO`` for counts (``TUNIT2 = 'legacy'``) and ``TRACTPIX``, the tract side:
+keywords the LSST writer adds for any extra metadata and its reader ignores.
 
 What our model holds beyond that layout (the metadata JSON, every cell's exact identity
 and WCS, empty cells, rejected inputs and the exact input records) goes into three extra
@@ -29,16 +32,23 @@ import fitsio
 import numpy as np
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddIncompatibleValuesError, CellCoaddRangeError
+from cellcoadd.errors import (
+    CellCoaddFormatError,
+    CellCoaddIncompatibleValuesError,
+    CellCoaddRangeError,
+)
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._fits.checksums import DATACRC_PLACEHOLDER
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io._fits.wcs_header import wcs_cards
 from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import cell_record_json
 from cellcoadd.io.coadd.format_version import sha256_hex
 from cellcoadd.io.coadd.inputs_table import inputs_to_array
+from cellcoadd.io.foreign.mask_planes import to_rubin
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
+from cellcoadd.model.observations import Observations
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
 
 #: ``VERSION`` written (the ``FILE_FORMAT_VERSION`` of lsst.cell_coadds that this follows).
@@ -48,15 +58,21 @@ LSST_VERSION = "0.8"
 MIN_VERSION, MAX_VERSION = (0, 6), (1, 0)
 #: Values of ``TUNIT2`` (``lsst.cell_coadds.CoaddUnits``).
 LSST_UNITS = ("legacy", "nJy", "chi")
-#: Zero point (AB mag) assumed for ``legacy`` pixels, which lsst.cell_coadds describes as
-#: scaled to a common zero point, "typically 27", without recording it.
-LEGACY_ZERO_POINT = 27.0
+#: Keyword of the cell table holding the AB zero point of ``legacy`` (counts) pixels, which
+#: lsst.cell_coadds itself does not record ("typically 27"): never assumed on reading.
+ZERO_POINT_KEY = "MAGZERO"
+#: Keyword of the cell table holding the tract side in pixels (for sky maps without a name).
+TRACT_PIXELS_KEY = "TRACTPIX"
 #: Vertices stored per overlap polygon (``POLYVERT``).
 POLYGON_VERTICES = 8
-#: Written as ``INSTRUME`` and ``SKYMAP`` (cellcoadd records neither).
+#: Written as ``INSTRUME`` and ``SKYMAP`` when the coadd records neither (our own sky maps;
+#: inputs of unknown instrument).
 UNKNOWN_NAME = "cellcoadd"
 #: Our extension HDUs (the LSST reader ignores them).
 EXT_METADATA, EXT_CELLS, EXT_INPUTS = "CELLCOADD", "CELLCOADD_CELLS", "CELLCOADD_INPUTS"
+#: Number of HDUs cellcoadd writes in this layout, stated in the primary header as CCNHDU.
+N_HDUS = 10  # primary, cells, CELL, VISIT, MASKDEF, VISIT_SUMMARY, APCORR and our three
+CCNHDU_CARD = {"name": "CCNHDU", "value": N_HDUS, "comment": "HDUs in this file (cellcoadd)"}
 #: Keywords of the cell table header that identify the layout.
 IDENTIFYING_KEYWORDS = ("VERSION", "GRCELL1", "GRSHAPE1", "GRMIN1", "OCELL1", "PSFSIZE1")
 
@@ -245,6 +261,9 @@ def _header_keys(meta: PatchMetadata, grid: CellGrid) -> list[dict[str, Any]]:
     gx, gy = grid.grid_min
     stop = grid.shape * grid.cell_inner - 1  # afw boxes have inclusive maxima
     units = lsst_units(meta.units)
+    observations = meta.observations
+    instrument = observations.instrument if observations else UNKNOWN_NAME
+    skymap = meta.skymap_config.name or UNKNOWN_NAME
     values: list[tuple[str, Any, str]] = [
         ("GRCELL1", grid.cell_inner, "inner cell size x"),
         ("GRCELL2", grid.cell_inner, "inner cell size y"),
@@ -263,14 +282,17 @@ def _header_keys(meta: PatchMetadata, grid: CellGrid) -> list[dict[str, Any]]:
         ("VERSION", LSST_VERSION, "lsst.cell_coadds file format version"),
         ("TUNIT2", units, "image units"),
         ("TUNIT4", f"{units}**2", "variance units"),
-        ("INSTRUME", UNKNOWN_NAME, "instrument (not recorded by cellcoadd)"),
+        ("INSTRUME", ascii_text(instrument), "instrument"),
         ("FILTER", ascii_text(meta.band), "band"),
-        ("SKYMAP", UNKNOWN_NAME, "sky map name (not recorded by cellcoadd)"),
+        ("SKYMAP", skymap, "sky map name"),
         ("TRACT", meta.tract, "tract"),
         ("PATCH_X", meta.patch[0], "patch index x"),
         ("PATCH_Y", meta.patch[1], "patch index y"),
         ("NNOISE", meta.n_noise, "noise realizations"),
+        (TRACT_PIXELS_KEY, meta.skymap_config.tract_pixels, "tract side, pixels"),
     ]
+    if units == "legacy":  # counts: the zero point, which the LSST layout does not record
+        values.append((ZERO_POINT_KEY, meta.zero_point, "AB zero point of the pixel values"))
     keys = [{"name": n, "value": v, "comment": c} for n, v, c in values]
     return [*keys, DATACRC_PLACEHOLDER]
 
@@ -305,14 +327,17 @@ def _used_table(stored: list[CellCoadd], grid: CellGrid, pixel_scale: float) -> 
 
 
 def _visit_tables(
-    stored: list[CellCoadd], grid: CellGrid, day_obs: int = 0
+    stored: list[CellCoadd], observations: Observations | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``VISIT`` and ``VISIT_SUMMARY`` rows of the used inputs.
 
-    The overlap polygon of an input is the box covering the outer boxes of the cells that
-    used it (pixel edges, tract pixels): cellcoadd does not keep the exposure footprints.
+    Physical filter and ``day_obs`` come from ``observations`` where it lists the visit;
+    otherwise the band and 0. The overlap polygon of an input is the box covering the outer
+    boxes of the cells that used it (pixel edges, tract pixels): cellcoadd does not keep the
+    exposure footprints.
     """
     filters: dict[int, str] = {}
+    days: dict[int, int] = {}
     boxes: dict[tuple[int, int], list[float]] = {}
     for cell in stored:
         box = cell.outer_bbox
@@ -320,12 +345,16 @@ def _visit_tables(
         for record in cell.inputs:
             if not record.is_used:
                 continue
-            filters.setdefault(record.visit, ascii_text(record.band))
+            if record.visit not in filters:
+                info = observations.visit(record.visit) if observations else None
+                name = info.physical_filter if info else record.band
+                filters[record.visit] = ascii_text(name)
+                days[record.visit] = info.day_obs if info else 0
             old = boxes.setdefault(record.key, edges)
             boxes[record.key] = [*map(min, old[:2], edges[:2]), *map(max, old[2:], edges[2:])]
     width = max([1, *(len(name) for name in filters.values())])
     visits = np.array(
-        [(v, filters[v].encode(), day_obs) for v in sorted(filters)],
+        [(v, filters[v].encode(), days[v]) for v in sorted(filters)],
         dtype=[("visit", "<i8"), ("physical_filter", f"S{width}"), ("day_obs", "<i8")],
     )
     summary = np.zeros(
@@ -350,12 +379,20 @@ def _visit_tables(
             )
         ring = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]  # closed, as afw lists it
         vertices = (ring + ring)[:POLYGON_VERTICES]
-        summary[row] = (visit, detector, filters[visit].encode()[:32], day_obs, 5, vertices)
+        summary[row] = (visit, detector, filters[visit].encode()[:32], days[visit], 5, vertices)
     return visits, summary
 
 
+def _apcorr(stored: list[CellCoadd], grid: CellGrid) -> np.ndarray:
+    """``APCORR``: one row per stored cell and no algorithm column (no aperture
+    corrections), so the LSST reader finds a map, empty, for every cell."""
+    local = [grid.local(cell.index) for cell in stored]
+    return np.array(local, dtype=[("x", "<i8"), ("y", "<i8")])
+
+
 def _maskdef(meta: PatchMetadata) -> np.ndarray:
-    bits = sorted(meta.mask_bits.bits.items(), key=lambda item: item[1])
+    # Rubin's (afw) plane names: see cellcoadd.io.foreign.mask_planes
+    bits = sorted(to_rubin(meta.mask_bits.bits, "afw").items(), key=lambda item: item[1])
     width = max([1, *(len(name) for name, _ in bits)])
     return np.array(
         [(name.encode(), bit) for name, bit in bits],
@@ -400,6 +437,21 @@ def _write_table(fits: fitsio.FITS, table: np.ndarray, extname: str, keys: list[
     fits[-1].write_checksum()
 
 
+def check_writable(patch: PatchCoadd, path: str, stored: list[CellCoadd] | None = None) -> None:
+    """Refuse, naming ``path``, a patch the layout cannot hold: one without any cell with
+    data (lsst.cell_coadds neither writes nor reads a patch without cells)."""
+    if stored is None:
+        stored = _stored_cells(patch)
+    if not stored:
+        meta = patch.metadata
+        raise CellCoaddFormatError(
+            path,
+            f"tract {meta.tract} patch {meta.patch} has no cell with data: the cell_coadds "
+            "layout cannot hold an empty patch (its reader needs at least one cell); write "
+            "it in our FITS or HDF5 format",
+        )
+
+
 def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -> None:
     """Write ``patch`` in the lsst.cell_coadds layout to a new file ``path`` (replaced).
 
@@ -414,10 +466,12 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
     meta = patch.metadata
     grid = grid_of(meta)
     stored = _stored_cells(patch)
+    check_writable(patch, path, stored)
     payload, version = format_version.metadata_payload(meta)
     cards, _ = wcs_cards(_tract_wcs(patch))
-    with fitsio.FITS(path, "rw", clobber=True) as fits:
-        fits.write(None, header=[*cards, DATACRC_PLACEHOLDER])
+    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
+        # CCNHDU: a file cut at an HDU boundary is still valid FITS; the count tells
+        fits.write(None, header=[*cards, CCNHDU_CARD, DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         dtype = _table_dtype(meta)
         units = ["", lsst_units(meta.units), "", f"{lsst_units(meta.units)}**2"]
@@ -429,10 +483,11 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
         table.write_checksum()
         pixel_scale = meta.skymap_config.pixel_scale
         _write_table(fits, _used_table(stored, grid, pixel_scale), "CELL", [])
-        visits, summary = _visit_tables(stored, grid)
+        visits, summary = _visit_tables(stored, meta.observations)
         _write_table(fits, visits, "VISIT", [])
         _write_table(fits, _maskdef(meta), "MASKDEF", [])
         _write_table(fits, summary, "VISIT_SUMMARY", [{"name": "POLYVERT", "value": 8}])
+        _write_table(fits, _apcorr(stored, grid), "APCORR", [])
         data = np.frombuffer(payload, dtype=np.uint8)
         fits.create_image_hdu(dims=data.shape, dtype=data.dtype, extname=EXT_METADATA)
         fits[-1].write(data)

@@ -3,7 +3,10 @@
 A file written by :func:`~cellcoadd.io.foreign.cell_coadds_layout.write_cell_coadds` carries our
 extension HDUs and reads back exactly. A file written by the LSST pipelines has none: the
 patch metadata are then derived from its headers (see ``docs/format.md``), every cell of
-the table becomes a cell with its used inputs, and nothing else is invented.
+the table becomes a cell with its used inputs, and nothing else is invented. The tract and
+patch geometry comes from the sky map the file names (``SKYMAP``, e.g. ``lsst_cells_v1``)
+and is checked against the file's own WCS and cell grid; the zero point of counts
+(``legacy``) from the file's ``MAGZERO``, or from the caller, never a default.
 """
 
 from __future__ import annotations
@@ -18,11 +21,13 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-from cellcoadd.errors import CellCoaddFormatError, DamagedDataError
+from cellcoadd.errors import CellCoaddFormatError, ConfigError, DamagedDataError
 from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.geometry.skymap import LSST_SKYMAPS, SKYMAP_ALIASES, SkyMap
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits.checksums import verify_hdu
+from cellcoadd.io._fits.paths import cfitsio_path
 from cellcoadd.io.coadd.cell_records import expected_shapes, parse_cell_record
 from cellcoadd.io.coadd.coadd_file import CoaddFile
 from cellcoadd.io.coadd.fits_format import check_fits_path
@@ -32,23 +37,37 @@ from cellcoadd.io.foreign.cell_coadds_layout import (
     EXT_CELLS,
     EXT_INPUTS,
     EXT_METADATA,
-    LEGACY_ZERO_POINT,
     LSST_UNITS,
     MAX_VERSION,
     MIN_VERSION,
+    TRACT_PIXELS_KEY,
+    UNKNOWN_NAME,
+    ZERO_POINT_KEY,
     CellGrid,
     grid_of,
     shape_from_quadrupole,
 )
+from cellcoadd.io.foreign.mask_planes import from_rubin
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MAX_BITS, MaskBits
+from cellcoadd.model.observations import Observations, VisitInfo
 from cellcoadd.model.patch_coadd import PatchMetadata
 from cellcoadd.model.units import NJY_ZERO_POINT
 
 _VERSION = re.compile(r"^(\d+)\.(\d+)(\.\d+)?$")
+#: Largest disagreement, pixels, tolerated between a file's WCS and its sky map's tract WCS
+#: at the patch corners (FITS headers keep ~14 digits: ~1e-7 px).
+WCS_TOLERANCE = 1e-3
 _PLANE_TYPES = {"image": "f4", "mask": "i4", "variance": "f4", "psf": "f8", "maskfrac": "f4"}
+
+
+def _text(value: Any) -> str:
+    """A fixed-width table string, without its padding."""
+    if isinstance(value, (bytes, np.bytes_)):
+        value = bytes(value).decode("ascii", "replace")
+    return str(value).rstrip(" \x00")
 
 
 def _native(array: np.ndarray) -> np.ndarray:
@@ -57,23 +76,41 @@ def _native(array: np.ndarray) -> np.ndarray:
 
 
 class CellCoaddsFile(CoaddFile):
-    """An lsst.cell_coadds FITS file opened lazily: a cell's row is read on demand."""
+    """An lsst.cell_coadds FITS file opened lazily: a cell's row is read on demand.
+
+    Parameters
+    ----------
+    path : str
+        The file.
+    verify : bool
+        Verify the checksums of what is read.
+    legacy_zero_point : float, optional
+        AB zero point of ``legacy`` (counts) pixels, for files that do not record it
+        (``MAGZERO``); such files are refused without it. Refused when the file records a
+        different one.
+    """
 
     format_name = "cell_coadds"
 
-    def __init__(self, path: str, *, verify: bool = True) -> None:
+    def __init__(
+        self, path: str, *, verify: bool = True, legacy_zero_point: float | None = None
+    ) -> None:
         check_fits_path(path)
         check_path_readable(path)
+        if legacy_zero_point is not None and not math.isfinite(legacy_zero_point):
+            raise ConfigError(f"legacy_zero_point must be finite, got {legacy_zero_point}")
         self.path, self.verify = path, verify
+        self.legacy_zero_point = legacy_zero_point
         self._raw: Any = open(path, "rb")  # for the checksums; closed by close()
         self._fits: Any = None
         self._checked: set[int] = set()
         try:
             with reading_errors(path, "cannot open the FITS file"):
-                self._fits = fitsio.FITS(path)
+                self._fits = fitsio.FITS(cfitsio_path(path))
                 self._numbers = {
                     hdu.get_extname().upper(): n for n, hdu in enumerate(self._fits) if n > 1
                 }
+            self._check_hdu_count()
             header = self._header(1)
             self.layout_version = self._check_version(header)
             self._rows, self._columns = self._read_cell_ids(header)
@@ -132,6 +169,15 @@ class CellCoaddsFile(CoaddFile):
         hdu = self._hdu(number)
         with reading_errors(self.path, self._name(number)):
             return hdu.read() if hdu.get_nrows() else None
+
+    def _check_hdu_count(self) -> None:
+        """A file cut at an HDU boundary is valid FITS: the count our writer states in
+        CCNHDU must match (files without it, e.g. Rubin's own, are read as they are)."""
+        primary = self._header(0)
+        if "CCNHDU" in primary:
+            stated, count = self._int(primary, "CCNHDU", 0), len(self._fits)
+            if stated != count:
+                raise self._fail(0, f"CCNHDU says {stated} HDUs, the file has {count} (truncated?)")
 
     def _int(self, header: Any, key: str, number: int = 1) -> int:
         value = header.get(key)
@@ -287,13 +333,44 @@ class CellCoaddsFile(CoaddFile):
             if not 0 <= bit < MAX_BITS:
                 raise self._fail(number, f"mask plane {name!r} is bit {bit}; cellcoadd has 0..30")
             bits[name] = bit
+        bits = from_rubin(bits, "afw")  # our names for Rubin's (afw) plane names
         if "NO_DATA" not in bits:
             bits["NO_DATA"] = min(set(range(MAX_BITS)) - set(bits.values()))
         with reading_errors(self.path, self._name(number)):
             return MaskBits(bits=bits)
 
-    def _derive_metadata(self, header: Any) -> PatchMetadata:
-        """Patch metadata of a file without our extension, from its headers and MASKDEF."""
+    def _zero_point(self, header: Any) -> tuple[str, float]:
+        """Our unit and zero point for ``TUNIT2`` (and ``MAGZERO``, or the caller's)."""
+        units = str(header.get("TUNIT2", "")).strip()
+        if units not in LSST_UNITS:
+            raise self._fail(1, f"TUNIT2 = {units!r}, expected one of {', '.join(LSST_UNITS)}")
+        if units == "chi":
+            raise self._fail(1, "TUNIT2 = 'chi': cellcoadd holds flux coadds (nJy or counts)")
+        if units == "nJy":
+            return "nJy", NJY_ZERO_POINT
+        stored = header.get(ZERO_POINT_KEY)
+        if stored is None:
+            if self.legacy_zero_point is None:
+                raise self._fail(
+                    1,
+                    f"TUNIT2 = 'legacy' (counts) and no {ZERO_POINT_KEY}: the zero point of the "
+                    "pixels is not recorded (lsst.cell_coadds says 'typically 27'); pass it "
+                    "explicitly, e.g. CellCoaddsFile(path, legacy_zero_point=27.0)",
+                )
+            return "count", float(self.legacy_zero_point)
+        if isinstance(stored, bool) or not isinstance(stored, (int, float, np.number)):
+            raise self._fail(1, f"{ZERO_POINT_KEY} = {stored!r} is not a number")
+        if not math.isfinite(float(stored)):
+            raise self._fail(1, f"{ZERO_POINT_KEY} = {stored!r} is not finite")
+        given = self.legacy_zero_point
+        if given is not None and given != float(stored):
+            raise self._fail(
+                1, f"{ZERO_POINT_KEY} = {stored} but legacy_zero_point = {given} was given"
+            )
+        return "count", float(stored)
+
+    def _patch_cells(self, header: Any) -> tuple[int, int]:
+        """``(cells_per_patch, patch_border_cells)`` from the grid and the patch index."""
         grid = self._grid_header
         px, py = self._int(header, "PATCH_X"), self._int(header, "PATCH_Y")
         # GRMIN = (patch * cells_per_patch - border) * cell_inner, GRSHAPE = cells + 2 border
@@ -304,38 +381,133 @@ class CellCoaddsFile(CoaddFile):
         border = borders.pop()
         if borders or border < 0:
             raise self._fail(1, "GRMIN/GRSHAPE do not place the patch's cells on a tract grid")
-        per_patch = grid.shape - 2 * border
-        units = str(header.get("TUNIT2", "")).strip()
-        if units not in LSST_UNITS:
-            raise self._fail(1, f"TUNIT2 = {units!r}, expected one of {', '.join(LSST_UNITS)}")
-        if units == "chi":
-            raise self._fail(1, "TUNIT2 = 'chi': cellcoadd holds flux coadds (nJy or counts)")
-        unit, zero_point = (
-            ("nJy", NJY_ZERO_POINT) if units == "nJy" else ("count", LEGACY_ZERO_POINT)
+        return grid.shape - 2 * border, border
+
+    def _declared_geometry(
+        self, header: Any, wcs: WCS, name: str
+    ) -> tuple[SkyMapConfig, tuple[float, float]]:
+        """Sky map configuration and tract centre from a sky map we know by name, checked
+        against the file's cell grid and WCS."""
+        skymap = SkyMap.named(name)
+        config = skymap.config
+        tract_id = self._int(header, "TRACT")
+        if not 0 <= tract_id < len(skymap):
+            raise self._fail(1, f"TRACT = {tract_id} is not a tract of {name} ({len(skymap)})")
+        tract = skymap[tract_id]
+        grid = self._grid_header
+        per_patch, border = self._patch_cells(header)
+        found = (grid.cell_inner, grid.cell_outer, per_patch, border)
+        wanted = (
+            config.cell_inner,
+            config.cell_outer,
+            config.cells_per_patch,
+            config.patch_border_cells,
         )
-        wcs = self._read_tract_wcs()
+        if found != wanted:
+            raise self._fail(
+                1,
+                f"SKYMAP = {name!r} has cells of {wanted[0]} px inner, {wanted[1]} px outer, "
+                f"{wanted[2]} per patch with {wanted[3]} border cell(s), but the cell table "
+                f"has {found[0]}, {found[1]}, {found[2]} and {found[3]}",
+            )
+        patch = (self._int(header, "PATCH_X"), self._int(header, "PATCH_Y"))
+        n = config.patches_per_tract
+        if not all(0 <= p < n for p in patch):
+            raise self._fail(1, f"patch {patch} is outside {name}'s {n} x {n} patches")
+        box = tract.patch(*patch).outer_bbox
+        xs = np.array([box.x_start, box.x_stop - 1, box.x_start, box.x_stop - 1], dtype=float)
+        ys = np.array([box.y_start, box.y_start, box.y_stop - 1, box.y_stop - 1], dtype=float)
+        with reading_errors(self.path, f"{self._name(0)}: the WCS"):
+            ra, dec = wcs.all_pix2world(xs, ys, 0)
+            x, y = tract.wcs.all_world2pix(ra, dec, 0)
+        off = float(np.max(np.hypot(x - xs, y - ys)))
+        if not off <= WCS_TOLERANCE:
+            raise self._fail(
+                0,
+                f"the WCS disagrees with SKYMAP = {name!r} tract {tract_id}: the patch corners "
+                f"are {off:.4g} px from where the sky map puts them (tract centre "
+                f"{tract.center}, tangent pixel {config.tangent_pixel}; the file has CRVAL "
+                f"{tuple(float(v) for v in wcs.wcs.crval)}, CRPIX "
+                f"{tuple(float(v) for v in wcs.wcs.crpix)})",
+            )
+        return config, tract.center
+
+    def _wcs_geometry(
+        self, header: Any, wcs: WCS, name: str
+    ) -> tuple[SkyMapConfig, tuple[float, float]]:
+        """Sky map configuration and tract centre from the file's WCS and keywords alone,
+        for a sky map we do not know by name (ours: ``SKYMAP = 'cellcoadd'``)."""
+        grid = self._grid_header
+        per_patch, border = self._patch_cells(header)
         scale = float(np.sqrt(abs(np.linalg.det(wcs.pixel_scale_matrix)))) * 3600.0
         scale = float(f"{scale:.12g}")  # the sky map's nominal value, not its rounding
-        crpix = wcs.wcs.crpix
-        tract_pixels = 2.0 * crpix[0] - 1.0  # our tract WCS: CRPIX at the box centre
+        crpix = wcs.wcs.crpix - 1.0  # 0-based tangent pixel
+        if crpix[0] != crpix[1]:
+            raise self._fail(0, f"CRPIX {tuple(wcs.wcs.crpix)}: not on the tract diagonal")
+        if TRACT_PIXELS_KEY in header:
+            tract_pixels = self._int(header, TRACT_PIXELS_KEY)
+        elif crpix[0] != round(crpix[0]):  # our own tracts: tangent point at the box centre
+            tract_pixels = round(2.0 * crpix[0] + 1.0)
+        else:
+            known = ", ".join(sorted([*LSST_SKYMAPS, *SKYMAP_ALIASES]))
+            raise self._fail(
+                1,
+                f"SKYMAP = {name!r} is not a sky map cellcoadd knows ({known}) and the file "
+                f"gives no {TRACT_PIXELS_KEY}: the tract size cannot be derived",
+            )
         patch_inner = per_patch * grid.cell_inner
-        patches = max(px, py) + 1
-        if crpix[0] == crpix[1] and tract_pixels == round(tract_pixels):
-            if round(tract_pixels) % patch_inner == 0:
-                patches = max(patches, round(tract_pixels) // patch_inner)
-        with reading_errors(self.path, f"{self._name(1)}: deriving the patch metadata"):
+        if tract_pixels <= 0 or tract_pixels % patch_inner:
+            raise self._fail(
+                1, f"a tract of {tract_pixels} px is not a whole number of {patch_inner}-px patches"
+            )
+        centred = crpix[0] == (tract_pixels - 1) / 2.0
+        if not centred and (crpix[0] != round(crpix[0]) or not 0 <= crpix[0] < tract_pixels):
+            raise self._fail(0, f"CRPIX {tuple(wcs.wcs.crpix)} is not a tangent pixel")
+        with reading_errors(self.path, f"{self._name(1)}: deriving the sky map"):
             config = SkyMapConfig(
                 pixel_scale=scale,
                 cell_inner=grid.cell_inner,
                 cell_border=(grid.cell_outer - grid.cell_inner) // 2,
                 cells_per_patch=per_patch,
                 patch_border_cells=border,
-                patches_per_tract=patches,
+                patches_per_tract=tract_pixels // patch_inner,
+                tangent_pixel=None if centred else round(crpix[0]),
+                name=None if name in ("", UNKNOWN_NAME) else name,
             )
+        return config, (float(wcs.wcs.crval[0]) % 360.0, float(wcs.wcs.crval[1]))
+
+    def _observations(self, header: Any) -> Observations | None:
+        instrument = str(header.get("INSTRUME", "")).strip()
+        if instrument in ("", UNKNOWN_NAME):
+            return None
+        number = self._named("VISIT")
+        table = self._table(number)
+        with reading_errors(self.path, self._name(number)):
+            visits = [
+                VisitInfo(
+                    visit=int(row["visit"]),
+                    physical_filter=_text(row["physical_filter"]),
+                    day_obs=int(row["day_obs"]),
+                )
+                for row in ([] if table is None else table)
+            ]
+            return Observations(instrument=instrument, visits=tuple(visits))
+
+    def _derive_metadata(self, header: Any) -> PatchMetadata:
+        """Patch metadata of a file without our extension, from its headers and MASKDEF."""
+        px, py = self._int(header, "PATCH_X"), self._int(header, "PATCH_Y")
+        unit, zero_point = self._zero_point(header)
+        wcs = self._read_tract_wcs()
+        name = str(header.get("SKYMAP", "")).strip()
+        if name in LSST_SKYMAPS or name in SKYMAP_ALIASES:
+            config, center = self._declared_geometry(header, wcs, name)
+        else:
+            config, center = self._wcs_geometry(header, wcs, name)
+        with reading_errors(self.path, f"{self._name(1)}: deriving the patch metadata"):
             return PatchMetadata(
                 skymap_config=config,
                 tract=self._int(header, "TRACT"),
-                tract_center=(float(wcs.wcs.crval[0]) % 360.0, float(wcs.wcs.crval[1])),
+                tract_center=center,
                 patch=(px, py),
                 band=str(header.get("FILTER", "")).strip(),
                 units=unit,
@@ -348,6 +520,7 @@ class CellCoaddsFile(CoaddFile):
                     zero_point=zero_point,
                 ),
                 software_version=f"lsst.cell_coadds (file VERSION {self.layout_version})",
+                observations=self._observations(header),
             )
 
     def _read_used_inputs(self, meta: PatchMetadata) -> dict[Any, list[InputRecord]]:
@@ -411,6 +584,7 @@ class CellCoaddsFile(CoaddFile):
                     psf_size=meta.psf_size,
                     inputs=inputs,
                     mask_bits=meta.mask_bits,
+                    common=meta.cell_common,
                 )
         hdu = self._hdu(1)
         where = f"{self._name(1)} row {row} (cell {key})"
@@ -440,6 +614,7 @@ class CellCoaddsFile(CoaddFile):
                 psf=_native(data["psf"]),
                 inputs=inputs,
                 **identity,
+                common=meta.cell_common,
             )
 
     def read_cell_inputs(self, index: tuple[int, int]) -> list[InputRecord]:

@@ -21,49 +21,21 @@ Typical use::
     g, cov = bfd.estimate_shear(prior.pqr(targets), prior)
 
 Conventions (PSF includes the pixel; jacobian in arcsec/pixel, GalSim ``u`` West /
-``v`` North; ``k`` in rad/arcsec; units of the moments) are in
-:mod:`cellcoadd.shear.bfd_moments`, the prior and selection in
-:mod:`cellcoadd.shear.bfd_prior`; see also ``docs/shear.md``.
+``v`` North; ``k`` in rad/arcsec; units of the moments) are documented with the
+implementation: the Fourier data and moments in ``_moments.py``, the combination of epochs
+in ``_epochs.py``, the template prior, selection and shear estimate in ``_prior.py``; see
+also ``docs/shear.md``. Those modules are private: import from ``cellcoadd.shear.bfd``.
 """
 
 from __future__ import annotations
 
 from cellcoadd.errors import BfdError
-from cellcoadd.shear.bfd_epochs import combine_epochs, sum_epochs
-from cellcoadd.shear.bfd_moments import (
-    DEFAULT_OVERSAMPLE,
-    EVEN_NAMES,
-    ODD_NAMES,
-    KData,
-    KSigmaWeight,
-    Moments,
-    bfd_moments,
-    centroid_jacobian,
-    fourier_data,
-    measure_moments,
-    moment_coefficients,
-    noise_power,
-)
-from cellcoadd.shear.bfd_prior import Pqr, TemplatePrior, estimate_shear, paired_bias
+from cellcoadd.shear.bfd import _epochs, _moments, _prior
+from cellcoadd.shear.bfd._epochs import *  # noqa: F403
+from cellcoadd.shear.bfd._moments import *  # noqa: F403
+from cellcoadd.shear.bfd._prior import *  # noqa: F403
 
-__all__ = [
-    "DEFAULT_OVERSAMPLE",
-    "EVEN_NAMES",
-    "ODD_NAMES",
-    "BfdError",
-    "KData",
-    "KSigmaWeight",
-    "Moments",
-    "Pqr",
-    "TemplatePrior",
-    "bfd_moments",
-    "centroid_jacobian",
-    "combine_epochs",
-    "estimate_shear",
-    "fourier_data",
-    "measure_moments",
-    "moment_coefficients",
-    "noise_power",
-    "paired_bias",
-    "sum_epochs",
-]
+__all__: list[str] = ["BfdError"]
+__all__ += _moments.__all__
+__all__ += _epochs.__all__
+__all__ += _prior.__all__

@@ -1,8 +1,8 @@
 """BFD moments (Bernstein & Armstrong 2014; Bernstein et al. 2016) of PSF-deconvolved images.
 
 This module turns a pixel image into *Fourier data* (:class:`KData`) and measures the BFD
-moments and their noise covariance from it; :mod:`cellcoadd.shear.bfd_prior` builds the
-template prior and the per-galaxy ``P, Q, R``. :mod:`cellcoadd.shear.bfd` re-exports both.
+moments and their noise covariance from it; ``_prior.py`` builds the template prior and
+the per-galaxy ``P, Q, R``. Public names are imported from :mod:`cellcoadd.shear.bfd`.
 
 Conventions and units
 ---------------------
@@ -49,6 +49,7 @@ __all__ = [
     "KSigmaWeight",
     "Moments",
     "bfd_moments",
+    "centroid_jacobian",
     "fourier_data",
     "measure_moments",
     "moment_coefficients",

@@ -2,10 +2,10 @@
 
 BFD moments are linear in the pixels (paper section 4.1; Bernstein et al. 2016): the
 moments of ``K`` unaliased exposures of one object, each in sky coordinates about the same
-sky origin and divided by its own PSF transform (:func:`~cellcoadd.shear.bfd_moments.
+sky origin and divided by its own PSF transform (:func:`~cellcoadd.shear.bfd.
 fourier_data`), can be combined at the catalogue level. :func:`combine_epochs` makes their
 weighted mean (the scale of one image), :func:`sum_epochs` their sum; either way the
-samples are concatenated, so :func:`~cellcoadd.shear.bfd_moments.measure_moments` of the
+samples are concatenated, so :func:`~cellcoadd.shear.bfd.measure_moments` of the
 result re-centres the object jointly and gives the combined covariance (the epochs'
 noise being independent).
 """
@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from cellcoadd.errors import BfdError
-from cellcoadd.shear.bfd_moments import KData
+from cellcoadd.shear.bfd._moments import KData
 
 __all__ = ["combine_epochs", "sum_epochs"]
 
@@ -68,7 +68,7 @@ def sum_epochs(epochs: Sequence[KData]) -> KData:
     the moments of ``K`` unaliased exposures of one object, each measured in sky
     coordinates about the same sky origin and divided by its own PSF transform, add up;
     the epochs' noise is independent, so their covariances add up too. The samples of all
-    epochs are concatenated: :func:`~cellcoadd.shear.bfd_moments.measure_moments` of the
+    epochs are concatenated: :func:`~cellcoadd.shear.bfd.measure_moments` of the
     result gives the summed moments (re-centred jointly) and their summed covariance.
     Templates must be combined the same way (the sum of ``K`` epochs is ``K`` times the
     galaxy's moments).

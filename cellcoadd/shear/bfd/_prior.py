@@ -13,10 +13,10 @@ unknown true position (``w_t`` includes the area element ``d2x0``): with the odd
 the likelihood it gives each template its centroid (Jacobian) factor and the shear
 dependence of it. The positions are a square grid of step ``shift_step`` in the whitened
 odd-moment space, ``x0 = J_t^-1 L z`` (``L L^T = C_odd``, ``J_t`` the template's
-:func:`~cellcoadd.shear.bfd_moments.centroid_jacobian`), ``|z| <= shift_radius``.
+:func:`~cellcoadd.shear.bfd.centroid_jacobian`), ``|z| <= shift_radius``.
 
 ``Q = dP/dg`` and ``R = d2P/dg2`` at ``g = 0`` follow analytically from the template
-moments' shear derivatives (:func:`~cellcoadd.shear.bfd_moments.moment_coefficients`)::
+moments' shear derivatives (:func:`~cellcoadd.shear.bfd.moment_coefficients`)::
 
     Q_j = sum_t w_t G_t a_j,   R_jl = sum_t w_t G_t (a_j a_l - b_jl + c_jl)
     a_j = d.C^-1 dM_t/dg_j,   b_jl = dM_t/dg_j.C^-1 dM_t/dg_l,   c_jl = d.C^-1 d2M_t/dg_j dg_l
@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from cellcoadd.errors import BfdError
-from cellcoadd.shear.bfd_moments import (
+from cellcoadd.shear.bfd._moments import (
     KData,
     Moments,
     centroid_jacobian,
@@ -207,7 +207,7 @@ class TemplatePrior:
         Parameters
         ----------
         templates : sequence of KData
-            Fourier data of deep galaxies (:func:`~cellcoadd.shear.bfd_moments.fourier_data`
+            Fourier data of deep galaxies (:func:`~cellcoadd.shear.bfd.fourier_data`
             of images with the same weight function; noise / 100 in the paper), drawn with
             random sub-pixel positions. Each is re-centred on its null-centroid point.
         cov_even, cov_odd : ndarray, shapes (4, 4) and (2, 2)

@@ -1,0 +1,687 @@
+"""The exposure index: one SQLite row per input file, its described header and sky footprint.
+
+A survey run must answer "which inputs may touch this patch" for hundreds of thousands of
+files without opening them, and its workers must build a patch without parsing a header
+again. :class:`ExposureIndex` stores, per input file (stdlib :mod:`sqlite3`, one file, no
+server):
+
+* how to open it: the manifest entry (path, layout, PSF model file, background file,
+  identity overrides), all paths absolute;
+* what the builder needs before pixels: the described header
+  (:class:`~cellcoadd.model.sources.ExposureHeader`: identity, band, zero point, shape,
+  valid box, mask-bit names and the exact WCS through
+  :func:`~cellcoadd.model.wcs_codec.wcs_to_record`), as JSON;
+* its sky footprint: the RA/Dec of the valid box's corners, and the HEALPix pixels (nested,
+  ``nside`` of the index, :mod:`hpgeom`) that the footprint overlaps: the spatial key.
+  HEALPix has no RA wrap and no singular poles, so a query near RA 0/360 or a pole is
+  the same query as anywhere else;
+* the size, modification time (ns) and, optionally, SHA-256 of every file the input reads
+  (exposure, PSF model, background), so that a changed input is found and re-read.
+
+Files that cannot be described are stored too, with the reason (status ``bad``), and
+listed; files that vanished since they were indexed are marked ``vanished``. Queries
+return only ``ok`` rows.
+
+Footprints are the polygon of the valid box's corners pushed outward by
+:data:`FOOTPRINT_MARGIN` pixels (WCS distortion bends the edges between the corners);
+HEALPix queries are ``inclusive``, so a query returns every input that may touch the
+region, and a few more: the builder's selection is exact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import hpgeom
+import numpy as np
+
+from cellcoadd.errors import CellCoaddError, CellCoaddFormatError
+from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.wcs_utils import canonical_wcs
+from cellcoadd.model.manifest import Manifest, ManifestEntry
+from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource
+from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
+
+#: Version of the tables below; an index of another version is refused.
+SCHEMA_VERSION = 1
+
+#: Default HEALPix resolution of the spatial key: nside 512 pixels are 6.9 arcmin on a side,
+#: so an LSST detector (13 arcmin) or a DECam CCD (9 x 18 arcmin) overlaps ~6 to 12 of them
+#: and an LSST patch (~10 arcmin) about as many.
+DEFAULT_NSIDE = 512
+
+#: Pixels by which a footprint's corners are pushed outward (distortion between corners).
+FOOTPRINT_MARGIN = 8.0
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS exposures (
+    id INTEGER PRIMARY KEY,
+    path TEXT NOT NULL UNIQUE,
+    status TEXT NOT NULL CHECK (status IN ('ok', 'bad', 'vanished')),
+    reason TEXT,
+    entry TEXT NOT NULL,
+    layout TEXT NOT NULL,
+    psf TEXT,
+    visit INTEGER,
+    detector INTEGER,
+    band TEXT,
+    zero_point REAL,
+    nx INTEGER,
+    ny INTEGER,
+    valid_box TEXT,
+    corners TEXT,
+    area_deg2 REAL,
+    header TEXT,
+    files TEXT NOT NULL,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    sha256 TEXT,
+    indexed REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS footprint (
+    pixel INTEGER NOT NULL,
+    exposure INTEGER NOT NULL REFERENCES exposures(id) ON DELETE CASCADE,
+    PRIMARY KEY (pixel, exposure)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS footprint_by_exposure ON footprint (exposure);
+CREATE INDEX IF NOT EXISTS exposures_by_band ON exposures (band, status);
+"""
+
+
+# -- the stored forms ------------------------------------------------------------------
+
+
+def header_to_json(header: ExposureHeader) -> str:
+    """``header`` as JSON; :func:`header_from_json` rebuilds it exactly (WCS bit for bit)."""
+    return json.dumps(
+        {
+            "visit": header.visit,
+            "detector": header.detector,
+            "band": header.band,
+            "wcs": wcs_to_record(header.wcs),
+            "wcs_pixel_shape": None
+            if header.wcs.pixel_shape is None
+            else list(header.wcs.pixel_shape),
+            "shape": list(header.shape),
+            "valid_box": [
+                header.valid_box.x_start,
+                header.valid_box.x_stop,
+                header.valid_box.y_start,
+                header.valid_box.y_stop,
+            ],
+            "zero_point": header.zero_point,
+            "mask_bits": header.mask_bits.bits,
+        },
+        separators=(",", ":"),
+    )
+
+
+def header_from_json(text: str) -> ExposureHeader:
+    """The :class:`ExposureHeader` stored by :func:`header_to_json`."""
+    data = json.loads(text)
+    x0, x1, y0, y1 = data["valid_box"]
+    wcs = wcs_from_record(data["wcs"])
+    if data.get("wcs_pixel_shape") is not None:
+        wcs.pixel_shape = tuple(data["wcs_pixel_shape"])
+    return ExposureHeader(
+        visit=int(data["visit"]),
+        detector=int(data["detector"]),
+        band=str(data["band"]),
+        # in the form a header read from its file takes (canonical_wcs), bit for bit
+        wcs=canonical_wcs(wcs),
+        shape=(int(data["shape"][0]), int(data["shape"][1])),
+        valid_box=Box(x_start=x0, x_stop=x1, y_start=y0, y_stop=y1),
+        zero_point=float(data["zero_point"]),
+        mask_bits=MaskBits(bits=data["mask_bits"]),
+    )
+
+
+def footprint_corners(header: ExposureHeader, margin: float = FOOTPRINT_MARGIN) -> np.ndarray:
+    """RA/Dec (deg) of the corners of the valid box, pushed outward by ``margin`` pixels,
+    in order around the box: shape ``(4, 2)``."""
+    box = header.valid_box
+    x0, x1 = box.x_start - 0.5 - margin, box.x_stop - 0.5 + margin
+    y0, y1 = box.y_start - 0.5 - margin, box.y_stop - 0.5 + margin
+    x = np.array([x0, x1, x1, x0])
+    y = np.array([y0, y0, y1, y1])
+    ra, dec = header.wcs.all_pix2world(x, y, 0)
+    return np.column_stack([np.mod(ra, 360.0), dec])
+
+
+def polygon_pixels(nside: int, corners: np.ndarray) -> np.ndarray:
+    """Nested HEALPix pixels overlapping the convex polygon ``corners`` ((n, 2) RA/Dec, deg)."""
+    return np.asarray(
+        hpgeom.query_polygon(nside, corners[:, 0], corners[:, 1], inclusive=True, nest=True),
+        dtype=np.int64,
+    )
+
+
+def polygon_area(corners: np.ndarray) -> float:
+    """Area of a small convex polygon (RA/Dec deg corners), deg^2, on its tangent plane."""
+    ra, dec = np.radians(corners[:, 0]), np.radians(corners[:, 1])
+    xyz = np.column_stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
+    centre = xyz.mean(axis=0)
+    centre /= np.linalg.norm(centre)
+    east = np.cross([0.0, 0.0, 1.0], centre)
+    east = east / np.linalg.norm(east) if np.linalg.norm(east) > 1e-12 else np.array([0, 1.0, 0])
+    north = np.cross(centre, east)
+    scale = xyz @ centre  # gnomonic projection
+    u, v = (xyz @ east) / scale, (xyz @ north) / scale
+    area = 0.5 * abs(np.dot(u, np.roll(v, -1)) - np.dot(v, np.roll(u, -1)))
+    return float(np.degrees(np.degrees(area)))
+
+
+# -- rows -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FileStamp:
+    """A file as it was when indexed: path, size (bytes), mtime (ns), SHA-256 (or None)."""
+
+    path: str
+    size: int
+    mtime_ns: int
+    sha256: str | None = None
+
+    @classmethod
+    def of(cls, path: str, checksum: bool = False) -> FileStamp:
+        info = os.stat(path)
+        digest = file_sha256(path) if checksum else None
+        return cls(path, int(info.st_size), int(info.st_mtime_ns), digest)
+
+    def changed(self, checksum: bool = False) -> str | None:
+        """Why the file on disk is no longer this one (None: unchanged)."""
+        try:
+            now = os.stat(self.path)
+        except FileNotFoundError:
+            return f"{self.path} vanished"
+        if int(now.st_size) != self.size or int(now.st_mtime_ns) != self.mtime_ns:
+            return f"{self.path} changed (size/mtime)"
+        if checksum and self.sha256 is not None and file_sha256(self.path) != self.sha256:
+            return f"{self.path} changed (checksum)"
+        return None
+
+
+def file_sha256(path: str) -> str:
+    """SHA-256 of a file's bytes, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        while chunk := file.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class IndexedExposure:
+    """One usable input of the index (an ``ok`` row): how to open it and its header.
+
+    The stored JSON is parsed when first asked for, so that a query returning hundreds
+    of rows costs little more than reading them.
+
+    Attributes
+    ----------
+    id : int
+        Row id in the index.
+    path : str
+        The exposure file (absolute).
+    visit, detector : int
+    band : str
+    entry : ManifestEntry
+        How to open the file (absolute paths).
+    corners : numpy.ndarray
+        ``(4, 2)`` RA/Dec (deg) of its footprint's corners.
+    files : tuple of FileStamp
+        Every file it reads (exposure, PSF model, background) as indexed.
+    header_json : str or None
+        The described header (:func:`header_from_json`); None when not read (queries).
+    """
+
+    id: int
+    path: str
+    visit: int
+    detector: int
+    band: str
+    entry_json: str = field(repr=False)
+    corners_json: str = field(repr=False)
+    files_json: str = field(repr=False)
+    header_json: str | None = field(default=None, repr=False)
+
+    @cached_property
+    def entry(self) -> ManifestEntry:
+        return ManifestEntry.model_validate_json(self.entry_json)
+
+    @cached_property
+    def corners(self) -> np.ndarray:
+        return np.asarray(json.loads(self.corners_json), dtype=float)
+
+    @cached_property
+    def files(self) -> tuple[FileStamp, ...]:
+        return tuple(FileStamp(p, s, m, h) for p, s, m, h in json.loads(self.files_json))
+
+    def header(self) -> ExposureHeader:
+        """The described header (rows from :meth:`ExposureIndex.by_ids` only)."""
+        if self.header_json is None:
+            raise CellCoaddFormatError(self.path, "its header was not read from the index")
+        return header_from_json(self.header_json)
+
+    def source(self) -> ExposureSource:
+        """The exposure source of the file (reads the PSF model file of survey layouts)."""
+        return source_of(self.entry)
+
+    def described(self) -> DescribedSource:
+        """The source with its stored header: what a build takes, no header parsed."""
+        return DescribedSource(self.source(), self.header())
+
+
+def source_of(entry: ManifestEntry) -> ExposureSource:
+    """The exposure source of a manifest entry whose paths are absolute."""
+    from cellcoadd.io.exposures.manifest_io import sources_from_manifest
+
+    return sources_from_manifest(Manifest(exposures=(entry,)), "/")[0]
+
+
+def absolute_entry(entry: ManifestEntry, base: str | os.PathLike[str]) -> ManifestEntry:
+    """``entry`` with its paths (file, PSF, background) made absolute from ``base``."""
+    base = Path(base)
+    changes = {
+        name: os.path.abspath(base / value)
+        for name in ("path", "psf", "background")
+        if (value := getattr(entry, name)) is not None
+    }
+    return entry.model_copy(update=changes)
+
+
+def entry_files(entry: ManifestEntry) -> list[str]:
+    """The files an input reads: the exposure, its PSF model and background files."""
+    return [p for p in (entry.path, entry.psf, entry.background) if p is not None]
+
+
+@dataclass(frozen=True)
+class Described:
+    """What a worker found in one file: its header and footprint, or why it is bad."""
+
+    entry: ManifestEntry
+    files: tuple[FileStamp, ...]
+    header_json: str | None = None
+    corners: np.ndarray | None = None
+    reason: str | None = None
+
+
+def describe_entry(entry: ManifestEntry, checksum: bool = False) -> Described:
+    """Read one input's headers (in any process): a :class:`Described`, never an error."""
+    stamps: list[FileStamp] = []
+    try:
+        for path in entry_files(entry):
+            stamps.append(FileStamp.of(path, checksum))
+    except OSError as err:
+        return Described(entry, tuple(stamps), reason=f"cannot read: {err}")
+    try:
+        header = source_of(entry).header()
+        corners = footprint_corners(header)
+        if not np.all(np.isfinite(corners)):
+            return Described(entry, tuple(stamps), reason="the WCS gives no sky footprint")
+        return Described(entry, tuple(stamps), header_to_json(header), corners)
+    except (CellCoaddError, OSError, ValueError, KeyError, TypeError) as err:
+        return Described(entry, tuple(stamps), reason=f"{type(err).__name__}: {err}")
+
+
+# -- the index ---------------------------------------------------------------------------
+
+
+@dataclass
+class IndexUpdate:
+    """What one :meth:`ExposureIndex.update` did (paths in each list)."""
+
+    added: list[str] = field(default_factory=list)
+    updated: list[str] = field(default_factory=list)
+    unchanged: list[str] = field(default_factory=list)
+    bad: list[tuple[str, str]] = field(default_factory=list)
+    vanished: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def summary(self) -> str:
+        return (
+            f"{len(self.added)} added, {len(self.updated)} updated, "
+            f"{len(self.unchanged)} unchanged, {len(self.bad)} bad, "
+            f"{len(self.vanished)} vanished ({self.seconds:.1f} s)"
+        )
+
+
+class ExposureIndex:
+    """An exposure index file (SQLite), opened for reading or updating.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``.sqlite`` file; created (with ``nside``) unless ``readonly``.
+    readonly : bool
+        Open for queries only (what workers do); the file must exist.
+    nside : int
+        HEALPix resolution of a new index (a power of 2); an existing index keeps its own.
+
+    Raises
+    ------
+    CellCoaddFormatError
+        When the file is not an index of this schema version, or does not exist (readonly).
+    """
+
+    def __init__(
+        self, path: str | os.PathLike[str], *, readonly: bool = False, nside: int = DEFAULT_NSIDE
+    ):
+        self.path = os.fspath(path)
+        if readonly and not os.path.isfile(self.path):
+            raise CellCoaddFormatError(self.path, "no such exposure index")
+        try:
+            if readonly:
+                uri = f"file:{os.path.abspath(self.path)}?mode=ro"
+                self._db = sqlite3.connect(uri, uri=True, timeout=60.0)
+            else:
+                self._db = sqlite3.connect(self.path, timeout=60.0)
+                self._db.executescript(_SCHEMA)
+            self._db.execute("PRAGMA foreign_keys = ON")
+            rows = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
+        except sqlite3.DatabaseError as err:
+            raise CellCoaddFormatError(self.path, f"not an exposure index ({err})") from None
+        if not rows and not readonly:
+            if nside <= 0 or nside & (nside - 1):
+                raise CellCoaddFormatError(self.path, f"nside {nside} is not a power of 2")
+            with self._db:
+                self._db.executemany(
+                    "INSERT INTO meta VALUES (?, ?)",
+                    [("schema_version", str(SCHEMA_VERSION)), ("nside", str(nside))],
+                )
+            rows = {"schema_version": str(SCHEMA_VERSION), "nside": str(nside)}
+        if rows.get("schema_version") != str(SCHEMA_VERSION):
+            raise CellCoaddFormatError(
+                self.path,
+                f"exposure index schema version {rows.get('schema_version')!r}, this "
+                f"library reads version {SCHEMA_VERSION}: index the files again",
+            )
+        self.nside = int(rows["nside"])
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> ExposureIndex:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- updating ----------------------------------------------------------------------
+
+    def update(
+        self,
+        entries: Sequence[ManifestEntry],
+        *,
+        checksum: bool = False,
+        workers: int = 1,
+        progress: Callable[[Iterable[Any], int], Iterable[Any]] | None = None,
+    ) -> IndexUpdate:
+        """Add new inputs, re-read changed ones, mark vanished ones.
+
+        Parameters
+        ----------
+        entries : sequence of ManifestEntry
+            Inputs with absolute paths (:func:`absolute_entry`).
+        checksum : bool
+            Also compare (and store) the SHA-256 of every file: finds changes that keep
+            size and mtime, at the cost of reading every byte.
+        workers : int
+            Processes reading headers.
+        progress : callable, optional
+            ``progress(iterable, total)`` wrapping the described files (e.g. tqdm).
+
+        Every row of the index (not only ``entries``) whose file is gone is marked
+        ``vanished``; it returns to ``ok`` when the file comes back and is indexed again.
+        """
+        start = time.perf_counter()
+        result = IndexUpdate()
+        known = {
+            path: (status, json.loads(files), stored)
+            for path, status, files, stored in self._db.execute(
+                "SELECT path, status, files, entry FROM exposures"
+            )
+        }
+        todo: list[ManifestEntry] = []
+        seen: set[str] = set()
+        for entry in entries:
+            if entry.path in seen:
+                continue
+            seen.add(entry.path)
+            old = known.get(entry.path)
+            if (
+                old is not None
+                and old[0] == "ok"
+                and old[2] == entry.model_dump_json()
+                and not _stale(old[1], entry, checksum)
+            ):
+                result.unchanged.append(entry.path)
+            else:
+                todo.append(entry)
+        described = self._describe_all(todo, checksum, workers, progress)
+        with self._db:
+            for item in described:
+                path = item.entry.path
+                if item.reason is not None:
+                    result.bad.append((path, item.reason))
+                elif path in known:
+                    result.updated.append(path)
+                else:
+                    result.added.append(path)
+                self.store(item)
+            for path, (status, files, _) in known.items():
+                if path not in seen and status != "vanished" and not _exists(files):
+                    self._db.execute(
+                        "UPDATE exposures SET status = 'vanished', reason = ? WHERE path = ?",
+                        ("the file vanished", path),
+                    )
+                    self._db.execute(
+                        "DELETE FROM footprint WHERE exposure = "
+                        "(SELECT id FROM exposures WHERE path = ?)",
+                        (path,),
+                    )
+                    result.vanished.append(path)
+        result.seconds = time.perf_counter() - start
+        return result
+
+    def _describe_all(
+        self,
+        entries: list[ManifestEntry],
+        checksum: bool,
+        workers: int,
+        progress: Callable[[Iterable[Any], int], Iterable[Any]] | None,
+    ) -> Iterator[Described]:
+        wrap = progress or (lambda items, total: items)
+        if workers <= 1 or len(entries) < 2:
+            yield from wrap((describe_entry(e, checksum) for e in entries), len(entries))
+            return
+        chunk = max(1, min(64, len(entries) // (4 * workers)))
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            results = pool.map(describe_entry, entries, [checksum] * len(entries), chunksize=chunk)
+            yield from wrap(results, len(entries))
+
+    def store(self, item: Described) -> None:
+        """Insert or replace the row of ``item`` and its footprint pixels; the caller
+        commits (:meth:`commit`, or a ``with`` block on the connection)."""
+        entry = item.entry
+        first = item.files[0] if item.files else FileStamp(entry.path, -1, -1)
+        layout = entry.layout if isinstance(entry.layout, str) else "custom"
+        values: dict[str, Any] = {
+            "path": entry.path,
+            "entry": entry.model_dump_json(),
+            "layout": layout,
+            "psf": entry.psf,
+            "files": json.dumps([[f.path, f.size, f.mtime_ns, f.sha256] for f in item.files]),
+            "size": first.size,
+            "mtime_ns": first.mtime_ns,
+            "sha256": first.sha256,
+            "indexed": time.time(),
+        }
+        if item.reason is not None or item.header_json is None or item.corners is None:
+            values.update(status="bad", reason=item.reason)
+            pixels: np.ndarray = np.zeros(0, dtype=np.int64)
+        else:
+            header = json.loads(item.header_json)
+            values.update(
+                status="ok",
+                reason=None,
+                visit=header["visit"],
+                detector=header["detector"],
+                band=header["band"],
+                zero_point=header["zero_point"],
+                ny=header["shape"][0],
+                nx=header["shape"][1],
+                valid_box=json.dumps(header["valid_box"]),
+                corners=json.dumps(item.corners.tolist()),
+                area_deg2=polygon_area(item.corners),
+                header=item.header_json,
+            )
+            pixels = polygon_pixels(self.nside, item.corners)
+        self._db.execute("DELETE FROM exposures WHERE path = ?", (entry.path,))
+        names = ", ".join(values)
+        marks = ", ".join("?" for _ in values)
+        cursor = self._db.execute(
+            f"INSERT INTO exposures ({names}) VALUES ({marks})", tuple(values.values())
+        )
+        row_id = cursor.lastrowid
+        self._db.executemany(
+            "INSERT INTO footprint (pixel, exposure) VALUES (?, ?)",
+            ((int(p), row_id) for p in pixels),
+        )
+
+    def put(self, entry: ManifestEntry, header: ExposureHeader, files: Sequence[FileStamp]) -> None:
+        """Store an input described elsewhere (e.g. synthetic rows for a benchmark); the
+        caller commits through :meth:`commit`."""
+        self.store(
+            Described(entry, tuple(files), header_to_json(header), footprint_corners(header))
+        )
+
+    def commit(self) -> None:
+        self._db.commit()
+
+    # -- queries -----------------------------------------------------------------------
+
+    def query(self, corners: np.ndarray, band: str | None = None) -> list[IndexedExposure]:
+        """The usable inputs whose footprint may overlap the convex polygon ``corners``
+        (``(n, 2)`` RA/Dec, deg), of ``band`` if given, ordered by (visit, detector)."""
+        pixels = polygon_pixels(self.nside, np.asarray(corners, dtype=float))
+        ids: set[int] = set()
+        for start in range(0, len(pixels), _CHUNK):
+            part = [int(p) for p in pixels[start : start + _CHUNK]]
+            marks = ", ".join("?" for _ in part)
+            # an explicit list: SQLite then searches the (pixel, exposure) key per pixel
+            ids.update(
+                row[0]
+                for row in self._db.execute(
+                    f"SELECT DISTINCT exposure FROM footprint WHERE pixel IN ({marks})", part
+                )
+            )
+        found = [
+            _indexed(row) for row in self._rows(sorted(ids), header=False) if band in (None, row[4])
+        ]
+        return sorted(found, key=lambda item: (item.visit, item.detector, item.path))
+
+    def _rows(self, ids: Sequence[int], header: bool = True) -> list[tuple[Any, ...]]:
+        """The ``ok`` rows (:data:`_COLUMNS`, the header or NULL) among ``ids``."""
+        columns = _COLUMNS + (", header" if header else ", NULL")
+        rows = []
+        for start in range(0, len(ids), _CHUNK):
+            part = [int(i) for i in ids[start : start + _CHUNK]]
+            marks = ", ".join("?" for _ in part)
+            rows += self._db.execute(
+                f"SELECT {columns} FROM exposures WHERE status = 'ok' AND id IN ({marks})", part
+            ).fetchall()
+        return rows
+
+    def by_ids(self, ids: Sequence[int]) -> list[IndexedExposure]:
+        """The usable inputs of row ``ids``, in the order of ``ids``.
+
+        Raises
+        ------
+        CellCoaddFormatError
+            When a row is missing or no longer usable (re-indexed, bad or vanished).
+        """
+        rows = {row[0]: row for row in self._rows(ids)}
+        missing = [i for i in ids if i not in rows]
+        if missing:
+            raise CellCoaddFormatError(
+                self.path, f"rows {missing[:5]} are gone or unusable: the index changed"
+            )
+        return [_indexed(rows[i]) for i in ids]
+
+    def bad_files(self) -> list[tuple[str, str]]:
+        """``(path, reason)`` of every file that is bad or vanished."""
+        return [
+            (path, reason or status)
+            for path, status, reason in self._db.execute(
+                "SELECT path, status, reason FROM exposures WHERE status != 'ok' ORDER BY path"
+            )
+        ]
+
+    def stats(self) -> dict[str, Any]:
+        """Files by status, bands (files and visits), visits, summed footprint area (deg^2)
+        and the union area covered (deg^2, from the HEALPix key: an upper bound)."""
+        db = self._db
+        by_status = dict(db.execute("SELECT status, COUNT(*) FROM exposures GROUP BY status"))
+        bands = {
+            band: {"files": files, "visits": visits, "area_deg2": round(area or 0.0, 4)}
+            for band, files, visits, area in db.execute(
+                "SELECT band, COUNT(*), COUNT(DISTINCT visit), SUM(area_deg2) FROM exposures "
+                "WHERE status = 'ok' GROUP BY band ORDER BY band"
+            )
+        }
+        (visits,) = db.execute(
+            "SELECT COUNT(DISTINCT visit) FROM exposures WHERE status = 'ok'"
+        ).fetchone()
+        (pixels,) = db.execute("SELECT COUNT(DISTINCT pixel) FROM footprint").fetchone()
+        (area,) = db.execute("SELECT SUM(area_deg2) FROM exposures WHERE status = 'ok'").fetchone()
+        return {
+            "path": self.path,
+            "nside": self.nside,
+            "files": sum(by_status.values()),
+            "ok": by_status.get("ok", 0),
+            "bad": by_status.get("bad", 0),
+            "vanished": by_status.get("vanished", 0),
+            "visits": visits,
+            "bands": bands,
+            "footprint_area_deg2": round(area or 0.0, 4),
+            "covered_area_deg2": round(pixels * hpgeom.nside_to_pixel_area(self.nside), 4),
+        }
+
+
+_COLUMNS = "id, path, visit, detector, band, entry, corners, files"
+#: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
+_CHUNK = 900
+
+
+def _indexed(row: tuple[Any, ...]) -> IndexedExposure:
+    row_id, path, visit, detector, band, entry, corners, files, header = row
+    return IndexedExposure(
+        int(row_id), path, int(visit), int(detector), str(band), entry, corners, files, header
+    )
+
+
+def _stale(files: list[list[Any]], entry: ManifestEntry, checksum: bool) -> bool:
+    """Whether an indexed input must be read again: other files, or a file changed."""
+    if [f[0] for f in files] != entry_files(entry):
+        return True
+    if checksum and any(f[3] is None for f in files):
+        return True  # no checksum stored yet
+    return any(FileStamp(p, s, m, h).changed(checksum) is not None for p, s, m, h in files)
+
+
+def _exists(files: list[list[Any]]) -> bool:
+    return bool(files) and os.path.exists(files[0][0])

@@ -1,0 +1,696 @@
+"""Hostile inputs, round 3: each finding of the issue, tried as it was found.
+
+Files are written by the tests themselves in survey shapes (LSST ``visit_image`` with a
+TAN-SIP WCS, DES ``SCI``/``MSK``/``WGT`` with the real CCD's TPV header, PSFEx ``.psf``
+tables, Piff files, TOML/JSON/CSV manifests). Every read that could hang runs in a thread
+with a deadline.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import gzip
+import json
+import os
+import shutil
+from pathlib import Path
+
+import fitsio
+import galsim
+import numpy as np
+import pytest
+from survey_psf_factory import write_psfex_file
+from test_survey_readers import LSST_NX, LSST_NY, lsst_planes, write_lsst
+
+from cellcoadd.errors import CellCoaddFormatError, PsfError
+from cellcoadd.io import (
+    read_build_config,
+    read_exposure,
+    read_lsst_exposure,
+    read_manifest,
+    read_piff,
+    read_psf_file,
+    read_psfex,
+    sources_from_manifest,
+    write_exposure,
+)
+from cellcoadd.io._files.path_gate import gate_read, gate_write
+from cellcoadd.model.psf import GalSimPsf, PiffPsf, PsfexPsf
+
+DEADLINE = 20.0  # seconds: a read that blocks (FIFO) fails the test instead of hanging it
+
+
+def _within_deadline(function, *args, **kwargs):
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+    future = pool.submit(function, *args, **kwargs)
+    try:
+        return future.result(timeout=DEADLINE)
+    finally:
+        pool.shutdown(wait=False)
+
+
+def _refused(function, *args, match: str | None = None, **kwargs) -> CellCoaddFormatError:
+    with pytest.raises(CellCoaddFormatError) as info:
+        _within_deadline(function, *args, **kwargs)
+    if match is not None:
+        assert match in str(info.value), str(info.value)
+    return info.value
+
+
+@pytest.fixture(scope="module")
+def psfex_path(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("psfex")
+    return write_psfex_file(root / "ccd3.psf", nx=LSST_NX, ny=LSST_NY, pixel_scale=0.2).path
+
+
+@pytest.fixture(scope="module")
+def lsst_file(tmp_path_factory) -> Path:
+    return write_lsst(tmp_path_factory.mktemp("lsst") / "visit_image.fits")
+
+
+def _piff_like(path: Path, marker: Path) -> Path:
+    """A file shaped like a Piff model whose 'WCS' is a pickle that would create
+    ``marker`` when loaded (the attack of the issue)."""
+    import pickle
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (marker,))
+
+    blob = np.frombuffer(pickle.dumps(Payload()), dtype=np.uint8)
+    with fitsio.FITS(path, "rw", clobber=True) as fits:
+        fits.write(None)
+        table = np.zeros(1, dtype=[("type", "S10"), ("piff_version", "S5")])
+        table["type"], table["piff_version"] = b"Simple", b"1.7.0"
+        fits.write(table, extname="psf", header={"PIFF_VERSION": "1.7.0"})
+        wcs = np.zeros(1, dtype=[("chipnums", "i8"), ("wcs_str_0000", "u1", blob.size)])
+        wcs["wcs_str_0000"][0] = blob
+        fits.write(wcs, extname="psf_wcs")
+    return path
+
+
+# -- 1. code execution ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["model.piff", "model.fits", "model.psf", "model"])
+def test_a_piff_file_is_never_unpickled_without_trust(tmp_path, name):
+    """Issue 28.1: any manifest psf not ending in .psf was read as Piff, and Piff unpickles
+    its WCS. Now the kind comes from the content, and Piff needs ``trusted=True``."""
+    marker = tmp_path / "pwned"
+    path = _piff_like(tmp_path / name, marker)
+    error = _refused(read_psf_file, path, match="pickled")
+    assert name in str(error)
+    _refused(read_piff, path, match="trusted=True")
+    assert not marker.exists()
+
+
+def test_a_manifest_piff_psf_needs_trust_psf(tmp_path, lsst_file):
+    marker = tmp_path / "pwned"
+    _piff_like(tmp_path / "calexp.psf_model", marker)
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    entry = {"path": "calexp.fits", "layout": "lsst", "psf": "calexp.psf_model"}
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"exposures": [entry]}))
+    with pytest.raises(CellCoaddFormatError, match="pickled") as info:
+        sources_from_manifest(read_manifest(manifest), tmp_path)
+    assert "calexp.psf_model" in str(info.value)
+    assert not marker.exists()
+    assert read_manifest(manifest).exposures[0].trust_psf is False
+
+
+def test_psf_files_are_recognised_by_content(tmp_path, psfex_path):
+    """A PSFEx table named ``.piff`` is PSFEx; junk named ``.psf`` is refused on reading."""
+    renamed = tmp_path / "not_a.piff"
+    shutil.copy(psfex_path, renamed)
+    model = read_psf_file(renamed)
+    assert isinstance(model, PsfexPsf) and model == read_psfex(psfex_path)
+    junk = tmp_path / "junk.psf"
+    junk.write_bytes(os.urandom(5000))
+    _refused(read_psf_file, junk, match="not a FITS file")
+    image_only = tmp_path / "image.psf"
+    fitsio.write(image_only, np.zeros((5, 5)), clobber=True)
+    _refused(read_psf_file, image_only, match="not a PSF model file")
+
+
+def test_model_classes_never_read_files(psfex_path):
+    with pytest.raises(PsfError, match="read_psfex"):
+        PsfexPsf(psfex_path)  # type: ignore[arg-type]
+    with pytest.raises(PsfError, match="read_piff"):
+        PiffPsf(str(psfex_path))
+
+
+def test_trusted_piff_still_reads(tmp_path):
+    pytest.importorskip("piff")
+    from survey_psf_factory import build_piff_model
+
+    path = build_piff_model(tmp_path / "m.bin", nx=80, ny=60, nstars_side=(3, 3)).path
+    model = read_psf_file(path, trusted=True)
+    assert isinstance(model, PiffPsf)
+    drawn = model.draw(40.0, 30.0, galsim_box(40, 30), np.eye(2) * 0.263)
+    assert abs(drawn.sum() - 1.0) < 0.02
+
+
+def galsim_box(x: int, y: int, half: int = 12):
+    from cellcoadd.geometry.box import Box
+
+    return Box(x_start=x - half, x_stop=x + half + 1, y_start=y - half, y_stop=y + half + 1)
+
+
+# -- 2. one gate for every path --------------------------------------------------------------
+
+
+def _exposure():
+    from exposure_factory import make_exposure
+
+    return make_exposure((150.0, 2.0), shape=(60, 60), psf=galsim.Gaussian(sigma=0.4))
+
+
+def test_plus_n_suffix_never_reads_another_file(tmp_path, lsst_file):
+    """Issue 28.2: ``e.fits+1`` read ``e.fits`` (CFITSIO's HDU suffix)."""
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "e.fits+1")
+    _refused(read_exposure, tmp_path / "e.fits+1", match="'+N' suffix")
+    shutil.copy(lsst_file, tmp_path / "v.fits")
+    shutil.copy(lsst_file, tmp_path / "v.fits+0")
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, tmp_path / "v.fits+0", psf, match="'+N' suffix")
+    with pytest.raises(CellCoaddFormatError, match="'\\+N' suffix"):
+        write_exposure(_exposure(), tmp_path / "new.fits+2")
+    assert not (tmp_path / "new.fits+2").exists()
+
+
+def test_plus_n_suffix_is_refused_by_the_build_command(tmp_path):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.build import build as build_command
+
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "e.fits+1")
+    result = CliRunner().invoke(
+        build_command,
+        [str(tmp_path / "e.fits+1"), "--tract", "0", "--patch", "0,0"]
+        + ["--out", str(tmp_path / "p.fits")],
+    )
+    message = result.output + str(result.exception)  # `cellcoadd` prints it in one line
+    assert result.exit_code != 0 and "+N" in message and "e.fits+1" in message, message
+    assert not (tmp_path / "p.fits").exists()
+
+
+def test_bang_prefix_reads_the_named_cell_coadds_file(tmp_path, monkeypatch):
+    """Issue 28.2: the Rubin cell_coadds reader read ``!d/y.fits`` as ``d/y.fits``."""
+    from coadd_factory import make_patch
+
+    from cellcoadd.io import api
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "d").mkdir()
+    (tmp_path / "!d").mkdir()
+    first, second = make_patch(band="r", seed=1), make_patch(band="i", seed=2)
+    api.write(first, "d/y.fits", layout="cell_coadds")
+    api.write(second, "!d/y.fits", layout="cell_coadds")
+    assert api.read("!d/y.fits").metadata.band == "i"
+    assert api.read("d/y.fits").metadata.band == "r"
+
+
+@pytest.mark.parametrize("what", ["manifest", "config", "psf", "exposure", "coadd"])
+def test_symlink_to_dev_zero_is_refused_unread(tmp_path, what):
+    """Issue 28.2: a symlink to /dev/zero was read whole (3 memory blow-ups)."""
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    name = {"manifest": "m.toml", "config": "c.toml", "psf": "p.psf"}.get(what, "x.fits")
+    link = tmp_path / name
+    link.symlink_to("/dev/zero")
+    reader = {
+        "manifest": read_manifest,
+        "config": read_build_config,
+        "psf": read_psf_file,
+        "exposure": read_exposure,
+        "coadd": _coadd_read,
+    }[what]
+    error = _refused_any(reader, link)
+    assert "character device" in str(error) and name in str(error)
+
+
+def _coadd_read(path):
+    from cellcoadd.io import api
+
+    return api.read(path)
+
+
+def _refused_any(reader, path):
+    with pytest.raises(Exception) as info:  # ConfigError wraps nothing: format errors only
+        _within_deadline(reader, path)
+    assert isinstance(info.value, CellCoaddFormatError), repr(info.value)
+    return info.value
+
+
+@pytest.mark.parametrize("what", ["manifest", "config", "psf", "exposure", "coadd"])
+def test_fifo_is_refused_without_blocking(tmp_path, what):
+    """Issue 28.2: a FIFO as a manifest hung the reader (2 hangs)."""
+    name = {"manifest": "m.json", "config": "c.json", "psf": "p.psf"}.get(what, "x.fits")
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    reader = {
+        "manifest": read_manifest,
+        "config": read_build_config,
+        "psf": read_psf_file,
+        "exposure": read_exposure,
+        "coadd": _coadd_read,
+    }[what]
+    error = _refused_any(reader, fifo)
+    assert "FIFO" in str(error)
+
+
+def test_writers_refuse_a_fifo_or_device_target(tmp_path):
+    fifo = tmp_path / "e.fits"
+    os.mkfifo(fifo)
+    with pytest.raises(CellCoaddFormatError, match="FIFO"):
+        _within_deadline(write_exposure, _exposure(), fifo, overwrite=True)
+    link = tmp_path / "z.fits"
+    link.symlink_to("/dev/null")
+    with pytest.raises(CellCoaddFormatError, match="character device"):
+        _within_deadline(write_exposure, _exposure(), link, overwrite=True)
+    assert os.path.exists("/dev/null") and not os.path.isfile("/dev/null")
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["e.fits[1]", "e.fits(t.fits)", "mem://e.fits", "https://x/e.fits", "e.fits+12", "e.fits "],
+)
+def test_cfitsio_syntax_is_refused_by_the_gate(tmp_path, monkeypatch, name):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(CellCoaddFormatError):
+        gate_read(name, fits=True)
+    with pytest.raises(CellCoaddFormatError):
+        gate_write(name, fits=True)
+
+
+def test_symlinks_are_resolved_and_the_target_checked(tmp_path):
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    shutil.copy(tmp_path / "e.fits", tmp_path / "x.fits[1]")
+    (tmp_path / "plain.fits").symlink_to(tmp_path / "x.fits[1]")
+    # the link's own name is harmless, its target's is not: refused
+    _refused(read_exposure, tmp_path / "plain.fits", match="resolved to")
+    # a chain of links through a CFITSIO-like name ends at e.fits: that file is read
+    (tmp_path / "e.fits+1").symlink_to(tmp_path / "e.fits")
+    (tmp_path / "chain.fits").symlink_to(tmp_path / "e.fits+1")
+    assert gate_read(tmp_path / "chain.fits", fits=True) == os.path.realpath(tmp_path / "e.fits")
+    (tmp_path / "ok.fits").symlink_to(tmp_path / "e.fits")
+    assert read_exposure(tmp_path / "ok.fits").visit == _exposure().visit
+    assert gate_read(tmp_path / "ok.fits") == os.path.realpath(tmp_path / "e.fits")
+
+
+def test_gzip_psf_file_is_not_inflated(tmp_path, psfex_path):
+    packed = tmp_path / "bomb.psf"
+    packed.write_bytes(gzip.compress(b"\0" * (20 << 20)))
+    _refused(read_psf_file, packed, match="not a FITS file")
+
+
+# -- 3. truncation of cell_coadds files -------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cell_coadds_bytes(tmp_path_factory) -> bytes:
+    from coadd_factory import make_patch
+
+    from cellcoadd.io import api
+
+    path = tmp_path_factory.mktemp("rubin") / "patch.fits"
+    api.write(make_patch(seed=3), path, layout="cell_coadds")
+    return path.read_bytes()
+
+
+def _hdu_starts(path: Path) -> list[int]:
+    with fitsio.FITS(str(path)) as fits:
+        return [int(hdu.get_offsets()["header_start"]) for hdu in fits]
+
+
+@pytest.mark.parametrize("hdu", [2, 3, 4, 5, 6, 7, 8, 9])
+def test_cell_coadds_cut_at_an_hdu_boundary_is_refused(tmp_path, cell_coadds_bytes, hdu):
+    """Issue 28.3: cut at the start of HDU 5 or 6, the file read as another patch."""
+    from cellcoadd.io import api
+
+    whole = tmp_path / "whole.fits"
+    whole.write_bytes(cell_coadds_bytes)
+    starts = _hdu_starts(whole)
+    cut = tmp_path / "cut.fits"
+    cut.write_bytes(cell_coadds_bytes[: starts[hdu]])
+    error = _refused(api.read, cut, match="CCNHDU")
+    assert f"the file has {hdu}" in str(error) and "cut.fits" in str(error)
+
+
+def test_cell_coadds_random_truncation_is_always_refused(tmp_path, cell_coadds_bytes):
+    from cellcoadd.io import api
+
+    rng = np.random.default_rng(28)
+    whole = tmp_path / "whole.fits"
+    whole.write_bytes(cell_coadds_bytes)
+    starts = _hdu_starts(whole)
+    offsets = [*rng.integers(1, len(cell_coadds_bytes), 40), *starts[1:]]
+    for offset in offsets:
+        cut = tmp_path / f"cut{offset}.fits"
+        cut.write_bytes(cell_coadds_bytes[:offset])
+        _refused(api.read, cut)
+
+
+# -- 4. and 10. PSF normalisation and conventions ---------------------------------------------
+
+
+def _tiny_build(psfs):
+    """Build the tiny patch from exposures made with ``psfs`` (one per exposure)."""
+    import dataclasses
+
+    from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
+
+    from cellcoadd import build_patch
+
+    patch = tiny_patch()
+    exposures = tiny_exposures(patch, n=len(psfs))
+    exposures = [dataclasses.replace(e, psf=p) for e, p in zip(exposures, psfs, strict=True)]
+    return build_patch(patch, exposures, TINY_BUILD, seed=1, progress=False)
+
+
+def test_a_profile_of_flux_half_is_refused_at_construction():
+    """Issue 28.4: a GalSim PSF of flux 0.5 moved the coadd PSF by 10% of its peak."""
+    from cellcoadd.errors import ExposureError
+
+    with pytest.raises(PsfError, match="flux 0.5"):
+        GalSimPsf(galsim.Gaussian(sigma=0.4, flux=0.5))
+    with pytest.raises(ExposureError, match="flux 1e-300"):
+        import dataclasses
+
+        dataclasses.replace(_exposure(), psf=galsim.Gaussian(sigma=0.4, flux=1e-300))
+
+
+def test_an_image_psf_summing_to_half_is_refused():
+    from cellcoadd.model.psf import ImagePsf
+
+    stamp = galsim.Gaussian(sigma=0.4).drawImage(nx=25, ny=25, scale=0.2).array
+    ImagePsf(stamp)  # sums to 1 within 1%
+    with pytest.raises(PsfError, match="flux 0.5"):
+        ImagePsf(0.5 * stamp / stamp.sum())
+
+
+def test_a_callable_of_the_wrong_flux_is_rejected_bad_psf():
+    """A callable's profiles are checked at each position: the input is rejected, named."""
+    good = GalSimPsf(galsim.Moffat(beta=3.5, fwhm=0.8))
+    half = GalSimPsf(lambda x, y: galsim.Moffat(beta=3.5, fwhm=0.8, flux=0.5))
+    built = _tiny_build([good, half])
+    for cell in built.values():
+        status = {r.visit: r.status for r in cell.inputs}
+        assert status.get(1) in (None, "bad_psf"), status
+        assert any(s == "bad_psf" for s in status.values()) or 1 not in status
+    assert any(r.status == "bad_psf" for c in built.values() for r in c.inputs)
+
+
+def test_a_bare_callable_must_state_the_pixel():
+    """Issue 28.10: a bare callable returning a PSFEx profile was taken as pre-pixel."""
+    import dataclasses
+
+    from cellcoadd.errors import ExposureError
+
+    with pytest.raises(ExposureError, match="include the pixel"):
+        dataclasses.replace(_exposure(), psf=lambda x, y: galsim.Gaussian(sigma=0.4))
+
+
+def test_a_profile_in_pixels_taken_as_arcsec_is_rejected_bad_psf():
+    """Issue 28.10: a profile returned in pixel units (5 px FWHM read as 5 arcsec)."""
+    good = GalSimPsf(galsim.Moffat(beta=3.5, fwhm=0.8))
+    in_pixels = GalSimPsf(lambda x, y: galsim.Moffat(beta=3.5, fwhm=0.8 / 0.2))
+    built = _tiny_build([good, in_pixels])
+    statuses = [r.status for c in built.values() for r in c.inputs if r.visit == 1]
+    assert statuses and all(s == "bad_psf" for s in statuses), statuses
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("PSF_SAMP", 0.0, "PSF_SAMP"),
+        ("POLSCAL1", 0.0, "POLSCAL"),
+        ("PSFAXIS1", 4, "PSFAXIS3/2/1"),
+        ("POLDEG1", 40, "POLDEG1"),
+        ("PSF_SAMP", "0.5", "not a number"),
+    ],
+)
+def test_broken_psfex_keywords_are_refused_on_reading(tmp_path, psfex_path, key, value, message):
+    """Issue 28.6: PSF_SAMP = 0 or POLSCAL1 = 0 failed the whole patch (ZeroDivisionError)."""
+    from astropy.io import fits
+
+    with fits.open(psfex_path) as hdus:
+        hdus[1].header[key] = value
+        hdus.writeto(tmp_path / "bad.psf")
+    error = _refused(read_psfex, tmp_path / "bad.psf", match=message)
+    assert "bad.psf" in str(error)
+
+
+@pytest.mark.parametrize("damage", ["random", "empty", "truncated", "nan", "gzip"])
+def test_broken_psfex_files_are_refused_on_reading(tmp_path, psfex_path, damage):
+    """Issue 28.6: broken PSF files were read as bytes, then every cell said bad_psf."""
+    from astropy.io import fits
+
+    data = psfex_path.read_bytes()
+    bad = tmp_path / "bad.psf"
+    if damage == "random":
+        bad.write_bytes(np.random.default_rng(6).bytes(len(data)))
+    elif damage == "empty":
+        bad.write_bytes(b"")
+    elif damage == "truncated":
+        bad.write_bytes(data[: len(data) - 1000])
+    elif damage == "gzip":
+        bad.write_bytes(gzip.compress(data))
+    else:
+        with fits.open(psfex_path) as hdus:
+            hdus[1].data["PSF_MASK"][0][0, 3, 3] = np.nan
+            hdus.writeto(bad)
+    _refused(read_psf_file, bad, match="bad.psf")
+
+
+def test_a_manifest_with_a_broken_psf_fails_before_the_build(tmp_path, lsst_file):
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    (tmp_path / "calexp.psf").write_bytes(b"SIMPLE  =" + os.urandom(3000))
+    (tmp_path / "m.toml").write_text(
+        '[[exposures]]\npath = "calexp.fits"\nlayout = "lsst"\npsf = "calexp.psf"\n'
+    )
+    with pytest.raises(CellCoaddFormatError, match="calexp.psf"):
+        sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)
+
+
+# -- 5. memory on survey readers ----------------------------------------------------------------
+
+
+def _forge_cards(data: bytes, values: dict[str, int]) -> bytes:
+    """``data`` with every header card ``KEY = ...`` of ``values`` rewritten in place."""
+    out = bytearray(data)
+    for key, value in values.items():
+        start = 0
+        prefix = f"{key:<8}= ".encode()
+        while (found := out.find(prefix, start)) >= 0:
+            if found % 80 == 0:
+                out[found : found + 80] = f"{key:<8}= {value:>20}".ljust(80).encode()
+            start = found + 80
+    return bytes(out)
+
+
+def _small_compressed_lsst(tmp_path: Path) -> Path:
+    """An LSST-shaped tile-compressed file whose planes are one 64 x 64 tile each."""
+    from test_survey_readers import LSST_PLANES, _sip_cards
+
+    path = tmp_path / "small.fits.fz"
+    wcs = _sip_cards()
+    mask_cards = [*wcs, *({"name": f"MP_{k}", "value": v} for k, v in LSST_PLANES.items())]
+    primary = [
+        {"name": "HIERARCH LSST BUTLER DATAID VISIT", "value": 2025061100123},
+        {"name": "HIERARCH LSST BUTLER DATAID DETECTOR", "value": 94},
+        {"name": "HIERARCH LSST BUTLER DATAID BAND", "value": "r"},
+    ]
+    with fitsio.FITS(path, "rw", clobber=True) as fits:
+        fits.write(None, header=primary)
+        for name, dtype, cards in (
+            ("IMAGE", np.float32, wcs),
+            ("MASK", np.int32, mask_cards),
+            ("VARIANCE", np.float32, wcs),
+        ):
+            plane = np.ones((64, 64), dtype=dtype)
+            fits.write(
+                plane,
+                extname=name,
+                header=cards,
+                compress="GZIP_2",
+                tile_dims=(64, 64),
+                qlevel=None,
+            )
+    return path
+
+
+@pytest.mark.parametrize(
+    ("size", "message"), [(16000, "more than the"), (4000, "stores")], ids=["huge", "ratio"]
+)
+def test_declared_planes_are_bounded_before_cfitsio_allocates(tmp_path, size, message):
+    """Issue 28.5: a 17 MB .fz declaring 16000 x 16000 planes reached 5.7 GB."""
+    import resource
+
+    small = _small_compressed_lsst(tmp_path)
+    forged = tmp_path / "forged.fits.fz"
+    cards = {"ZNAXIS1": size, "ZNAXIS2": size, "ZTILE1": size, "ZTILE2": size}  # one tile
+    forged.write_bytes(_forge_cards(small.read_bytes(), cards))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    read_lsst_exposure(small, psf, zero_point=30.0)  # the file as written reads
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    error = _refused(read_lsst_exposure, forged, psf, zero_point=30.0, match=message)
+    assert "forged.fits.fz" in str(error) and "HDU" in str(error)
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mb < 200, grown_mb
+
+
+def test_gzip_stream_named_fz_is_refused_before_cfitsio(tmp_path, lsst_file):
+    """Issue 28.5: a 1.5 MB gzip named .fits.fz took 1.74 GB and 85 s (CFITSIO inflated it)."""
+    packed = tmp_path / "visit.fits.fz"
+    packed.write_bytes(gzip.compress(b"\0" * (64 << 20)))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, packed, psf, match="not a FITS file")
+
+
+# -- 7. strict header values --------------------------------------------------------------------
+
+
+def _with_primary_key(source: Path, target: Path, key: str, value) -> Path:
+    shutil.copy(source, target)
+    with fitsio.FITS(str(target), "rw") as fits:
+        fits[0].write_key(key, value)
+    return target
+
+
+def test_a_zero_point_keyword_that_is_not_a_number_is_refused(tmp_path, lsst_file):
+    """Issue 28.7: MAGZERO = '31.2' (a string) was ignored and zero_point= used silently."""
+    from cellcoadd.io import LSST_LAYOUT, ZeroPointKey, read_mef_exposure
+
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    layout = LSST_LAYOUT.model_copy(update={"zero_point_keys": (ZeroPointKey(keyword="MAGZERO"),)})
+    path = _with_primary_key(lsst_file, tmp_path / "magzero.fits", "MAGZERO", "31.2")
+    error = _refused(read_mef_exposure, path, layout, psf, zero_point=30.0, match="MAGZERO")
+    assert "'31.2'" in str(error) and "HDU 0" in str(error)
+    path = _with_primary_key(lsst_file, tmp_path / "fluxmag0.fits", "FLUXMAG0", -5.0)
+    _refused(read_lsst_exposure, path, psf, zero_point=30.0, match="FLUXMAG0")
+    # a number reads; no keyword at all still takes zero_point=
+    path = _with_primary_key(lsst_file, tmp_path / "ok.fits", "MAGZERO", 31.2)
+    assert read_mef_exposure(path, layout, psf, zero_point=30.0).zero_point == 31.2
+
+
+def test_an_undefined_high_mask_bit_in_an_int64_mask_is_refused(tmp_path):
+    """Issue 28.7: bit 40 of an int64 mask was dropped by the cast to int32."""
+    image, mask, variance = lsst_planes()
+    wide = mask.astype(np.int64)
+    wide[7, 9] |= np.int64(1) << 40
+    path = write_lsst(tmp_path / "wide.fits", (image, wide, variance))
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    error = _refused(read_lsst_exposure, path, psf, match="have no name")
+    assert "0x10000000000" in str(error) and "MASK" in str(error)
+    narrow = write_lsst(tmp_path / "narrow.fits", (image, mask.astype(np.int64), variance))
+    np.testing.assert_array_equal(read_lsst_exposure(narrow, psf).mask, mask)
+
+
+# -- 8. manifests and configurations ----------------------------------------------------------
+
+
+def _deep(kind: str, depth: int) -> str:
+    if kind == "json":
+        return '{"exposures": ' + "[" * depth + "]" * depth + "}"
+    return "exposures = " + "[" * depth + "]" * depth + "\n"
+
+
+@pytest.mark.parametrize("kind", ["json", "toml"])
+@pytest.mark.parametrize("reader", [read_manifest, read_build_config], ids=["manifest", "config"])
+@pytest.mark.parametrize("depth", [100_000, 40])
+def test_deep_nesting_is_refused_naming_the_file(tmp_path, kind, reader, depth):
+    """Issue 28.8: 100,000-deep nesting raised a RecursionError without the file's name."""
+    path = tmp_path / f"deep.{kind}"
+    path.write_text(_deep(kind, depth))
+    error = _refused(reader, path, match="nested")
+    assert f"deep.{kind}" in str(error)
+
+
+def test_duplicate_keys_are_refused(tmp_path):
+    """Issue 28.8: duplicate keys in JSON or CSV manifests: the last silently won."""
+    entry = '{"path": "a.fits", "visit": 1, "visit": 2}'
+    (tmp_path / "m.json").write_text('{"exposures": [' + entry + "]}")
+    _refused(read_manifest, tmp_path / "m.json", match="key visit twice")
+    (tmp_path / "t.json").write_text('{"exposures": [], "exposures": [{"path": "a.fits"}]}')
+    _refused(read_manifest, tmp_path / "t.json", match="key exposures twice")
+    (tmp_path / "c.json").write_text('{"n_noise": 1, "n_noise": 3}')
+    _refused(read_build_config, tmp_path / "c.json", match="key n_noise twice")
+    (tmp_path / "m.csv").write_text("path,visit,visit\na.fits,1,2\n")
+    _refused(read_manifest, tmp_path / "m.csv", match="['visit'] twice")
+    (tmp_path / "m.toml").write_text('[[exposures]]\npath = "a.fits"\npath = "b.fits"\n')
+    _refused(read_manifest, tmp_path / "m.toml", match="m.toml")
+
+
+# -- 9. --out never one of the inputs -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("how", ["same", "relative", "symlink", "hardlink", "manifest"])
+def test_build_out_equal_to_an_input_is_refused(tmp_path, monkeypatch, how):
+    """Issue 28.9: --out equal to an input exposure replaced it with the coadd, exit 0."""
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.build import build as build_command
+
+    monkeypatch.chdir(tmp_path)
+    write_exposure(_exposure(), tmp_path / "e.fits")
+    before = (tmp_path / "e.fits").read_bytes()
+    out = {"same": str(tmp_path / "e.fits"), "relative": "./e.fits", "manifest": "m.toml"}
+    if how == "symlink":
+        (tmp_path / "link.fits").symlink_to(tmp_path / "e.fits")
+    if how == "hardlink":
+        os.link(tmp_path / "e.fits", tmp_path / "hard.fits")
+    target = out.get(how, {"symlink": "link.fits", "hardlink": "hard.fits"}.get(how))
+    args = ["e.fits"]
+    if how == "manifest":
+        (tmp_path / "m.toml").write_text('[[exposures]]\npath = "e.fits"\n')
+        args, target = ["--manifest", "m.toml"], "e.fits"
+    result = CliRunner().invoke(
+        build_command, [*args, "--tract", "0", "--patch", "0,0", "--out", target, "--overwrite"]
+    )
+    assert result.exit_code != 0 and "is the input file" in result.output, result.output
+    assert (tmp_path / "e.fits").read_bytes() == before
+
+
+# -- 11. band mismatch --------------------------------------------------------------------------
+
+
+def test_a_band_mismatch_is_an_input_error_naming_the_exposures():
+    """Issue 28.11: a band mismatch was refused as a plain ValueError."""
+    import dataclasses
+
+    from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
+
+    from cellcoadd import build_patch
+    from cellcoadd.errors import InputError
+
+    patch = tiny_patch()
+    first, second = tiny_exposures(patch, n=2)
+    with pytest.raises(InputError, match="several bands") as info:
+        build_patch(patch, [first, dataclasses.replace(second, band="i")], TINY_BUILD)
+    assert f"visit={second.visit}" in str(info.value) and "'i'" in str(info.value)
+
+
+@pytest.mark.parametrize("order", [100_000, 5000, -3, "2"])
+def test_a_huge_sip_order_is_refused_before_astropy_allocates(tmp_path, lsst_file, order):
+    """Found by the header fuzz: A_ORDER = 100000 made astropy allocate 75 GB."""
+    path = tmp_path / "sip.fits"
+    shutil.copy(lsst_file, path)
+    with fitsio.FITS(str(path), "rw") as fits:
+        fits[1].write_key("A_ORDER", order)
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    _refused(read_lsst_exposure, path, psf, match="A_ORDER")
+
+
+def test_a_trusted_manifest_piff_psf_reads(tmp_path, lsst_file):
+    pytest.importorskip("piff")
+    from survey_psf_factory import build_piff_model
+
+    build_piff_model(tmp_path / "calexp.piff", nx=LSST_NX, ny=LSST_NY, nstars_side=(3, 3))
+    shutil.copy(lsst_file, tmp_path / "calexp.fits")
+    entry = '[[exposures]]\npath = "calexp.fits"\nlayout = "lsst"\npsf = "calexp.piff"\n'
+    (tmp_path / "m.toml").write_text(entry + "trust_psf = true\n")
+    (source,) = sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)
+    assert isinstance(source.psf, PiffPsf)
