@@ -26,7 +26,6 @@ from astropy.wcs import WCS
 from astropy.wcs.wcs import NoConvergence
 
 from cellcoadd.builder.kernels.descriptor import WARP_KERNEL, KernelDescriptor
-from cellcoadd.builder.kernels.extremes import extremes_2d
 from cellcoadd.builder.kernels.node_interpolation import interpolate_nodes
 from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, GeometryError, MappingError
 from cellcoadd.geometry.box import Box
@@ -196,10 +195,7 @@ def footprint_box(mapping: PixelPositions, kernel: KernelDescriptor = WARP_KERNE
         raise MappingError("an empty mapping has no footprint")
     # floor is monotonic: the floor of the extremes is the extreme of the floors; a NaN
     # propagates to the extremes, an infinity stays one
-    if x.ndim == 2 and y.ndim == 2:  # one pass over each (a block's mapping is large)
-        x_min, x_max, y_min, y_max = extremes_2d(x, y)
-    else:
-        x_min, x_max, y_min, y_max = x.min(), x.max(), y.min(), y.max()
+    x_min, x_max, y_min, y_max = x.min(), x.max(), y.min(), y.max()
     if not np.isfinite([x_min, x_max, y_min, y_max]).all():
         raise MappingError("some pixels do not map into the exposure")
     x_start, x_stop = kernel.tap_range(x_min, x_max)
