@@ -10,8 +10,8 @@ For each layout (FITS and HDF5, uncompressed and lossless-compressed) it writes 
 verified) and reads single cells (``read_cell``: open, find the cell, read it, verify it,
 close), with medians of repeated runs. Rates are in-memory megabytes of pixel data per
 second. Reads come from the page cache (the file was just written), which isolates the
-library's own cost from the disk. The target: ``read_cell`` at least 50 times faster than
-reading the whole patch.
+library's own cost from the disk. The targets: ``read_cell`` at least 50 times faster than
+reading the whole patch; for HDF5, at most 10 ms and at least 300 times faster.
 
 Before that table it compares writes with the disk: each uncompressed layout's patch write
 (``cellcoadd.io.write``: atomic, checksums, fsync) against ``dd`` writing the same number of
@@ -249,7 +249,7 @@ def main() -> None:
         "read / read_cell",
     ]
     print(format_table(header, rows, ["s", ".0f", ".2f", ".0f", ".2f", ".0f", ".1f", ".0f"]))
-    print("\ntarget: read / read_cell >= 50")
+    print("\ntargets: read / read_cell >= 50; HDF5: read_cell <= 10 ms and >= 300x the whole read")
 
 
 if __name__ == "__main__":

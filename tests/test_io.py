@@ -28,6 +28,7 @@ from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.io import api
 from cellcoadd.io.coadd import fits_format, format_version, hdf5_format
+from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 
@@ -335,6 +336,49 @@ def test_fits_read_cell_touches_only_its_cell(tmp_path, written, patch):
         api.read_cell(path, corrupted)
     # Without verification the flipped bit goes through: verify is on by default for a reason.
     assert not api.read_cell(path, corrupted, verify=False).equals(patch[corrupted])
+
+
+class _OpenedObjects:
+    """Stands in for h5py's ``h5o`` module inside ``h5py._hl.group``: records the name of
+    every object the high-level API opens (groups and datasets, hence their attributes and
+    bytes)."""
+
+    def __init__(self, module):
+        self.module = module
+        self.names = []
+
+    def __getattr__(self, name):
+        return getattr(self.module, name)
+
+    def open(self, *args, **kwargs):
+        oid = self.module.open(*args, **kwargs)
+        self.names.append(h5py.h5i.get_name(oid).decode("ascii"))
+        return oid
+
+
+@pytest.mark.parametrize("name", ["plain.h5", "packed.h5"])
+def test_hdf5_read_cell_touches_only_its_cell(tmp_path, written, patch, monkeypatch, name):
+    """Reading one cell opens the root's objects and that cell's group and datasets, and no
+    object of any other cell (listing the names of /cells reads only its link index)."""
+    path = tmp_path / "patch.h5"
+    path.write_bytes(written[name][0])
+    opened = _OpenedObjects(h5py._hl.group.h5o)
+    monkeypatch.setattr(h5py._hl.group, "h5o", opened)
+    for index in list(patch)[:3]:
+        opened.names.clear()
+        assert api.read_cell(path, index).equals(patch[index])
+        group = f"/cells/{hdf5_format.group_name(index)}"
+        outside = {n for n in opened.names if n not in ("/", "/cells", "/metadata")}
+        outside = {n for n in outside if n != group and not n.startswith(group + "/")}
+        assert not outside, f"reading cell {index} opened {sorted(outside)}"
+        planes = {n.rsplit("/", 1)[1] for n in opened.names if n.startswith(group + "/")}
+        assert planes == set(cell_planes.cell_objects())  # the instrument sees the reads
+    # a whole read opens every cell: the instrument would see another cell's objects
+    opened.names.clear()
+    api.read(path)
+    assert {n.split("/")[2] for n in opened.names if n.count("/") >= 2} == {
+        hdf5_format.group_name(index) for index in patch
+    }
 
 
 def test_missing_hdu_or_dataset(tmp_path, written, patch):

@@ -226,3 +226,26 @@ def test_footprint_box_accepts_any_positions_object():
         y = np.array([[-3.5, 4.0]])
 
     assert footprint_box(Positions()) == Box(x_start=8, x_stop=15, y_start=-6, y_stop=8)
+
+
+def test_unit_area_snapping_matches_numpy_bit_for_bit():
+    """The one-pass snapping of area ratios near 1 sets exactly the values numpy's masked
+    assignment sets (ratios within the tolerance of 1, at its edge, NaN and infinities)."""
+    from cellcoadd.builder.kernels.unit_area import snap_unit_area
+
+    rng = np.random.default_rng(3)
+    tolerance = 1e-8
+    values = np.concatenate(
+        [
+            1.0 + rng.normal(0.0, 2e-8, 5000),
+            rng.uniform(0.5, 1.5, 1000),
+            1.0 + np.array([tolerance, -tolerance, np.nextafter(tolerance, 0.0), 0.0, -0.0]),
+            [np.nan, np.inf, -np.inf, 0.0, -0.0],
+        ]
+    )
+    got = values.reshape(-1, 5).copy()
+    expected = got.copy()
+    snap_unit_area(got, tolerance)
+    expected[np.abs(expected - 1.0) < tolerance] = 1.0
+    assert np.array_equal(got.view(np.uint64), expected.view(np.uint64))
+    assert 0 < np.count_nonzero(got == 1.0) < got.size  # some snapped, some not

@@ -82,9 +82,12 @@ def warped_contribution(
     plane_weights = [weight] * (1 + n_noise) + [weight**2] + [weight] * with_mfrac
     plane_scales = [0] * (1 + n_noise) + [1] + [-1] * with_mfrac
     planes = np.zeros((pixels.shape[2], *x_local.shape))
-    accumulate_warped(
-        pixels, x_local, y_local, planes, plane_weights, np.stack([area, area**2]), plane_scales
-    )
+    # the area and its square, made in place (the same values as np.stack([area, area**2])
+    # without the temporary of the square and the copy of both)
+    scales = np.empty((2, *area.shape))
+    scales[0] = area
+    np.multiply(area, area, out=scales[1])
+    accumulate_warped(pixels, x_local, y_local, planes, plane_weights, scales, plane_scales)
     return planes, warp_mask_or(mask, x_local, y_local)
 
 

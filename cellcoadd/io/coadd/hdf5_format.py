@@ -303,12 +303,14 @@ class Hdf5CoaddFile(CoaddFile):
                 raise CellCoaddFormatError(self.path, "metadata SHA-256 mismatch: corrupted")
             metadata = decode_metadata(self.path, payload, version)
         with reading_errors(self.path, "listing the cells"):
+            # names only (the link index of /cells): each cell's own link and objects are
+            # checked when that cell is read (:meth:`_group`), so opening the file to read
+            # one cell touches no other cell's objects
             groups = {}
             for name in cells_group:
                 match = _GROUP_NAME.match(name)
                 if match is None:
                     raise DamagedDataError(f"unexpected group /cells/{name}", hdu=f"/cells/{name}")
-                _plain_link(cells_group, name)
                 groups[(int(match.group(1)), int(match.group(2)))] = name
         if file_version >= _CONTENTS_SINCE:
             self._check_contents(payload, groups)
