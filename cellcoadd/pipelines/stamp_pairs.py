@@ -83,7 +83,7 @@ from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
 from cellcoadd.shear.shapes import empty_record
-from cellcoadd.sim.stamps import StampObject, simulate_object
+from cellcoadd.sim.stamps import StampObject, simulate_object, simulate_sheared
 
 #: ``flags`` bit of a measurement that could not be made because the coadd is empty.
 NO_COADD = 1 << 8
@@ -199,7 +199,7 @@ def bfd_noise_sigma(settings: ValidationSettings) -> float:
 
 def _with_noise(obj: StampObject, noise: np.ndarray, sigma: float) -> list[Exposure]:
     return [
-        dataclasses.replace(exposure, image=exposure.image + sigma * plane, variance=sigma**2)
+        exposure.replace(image=exposure.image + sigma * plane, variance=sigma**2)
         for exposure, plane in zip(obj.exposures, noise, strict=True)
     ]
 
@@ -255,7 +255,7 @@ def _as_object(obj: StampObject, index: int) -> StampObject:
     realizations)."""
     if obj.index == index:
         return obj
-    exposures = [dataclasses.replace(e, detector=int(index)) for e in obj.exposures]
+    exposures = [e.replace(detector=int(index)) for e in obj.exposures]
     return dataclasses.replace(obj, index=int(index), exposures=exposures)
 
 
@@ -338,14 +338,12 @@ def measure_pair(
     g1, g2 = settings.sim.shear
     base, turn = _partner(settings, index)
     plus, minus = (
-        _as_object(
-            simulate_object(
-                settings.sim, settings.seed, base, g, add_noise=False, rotate_shape=turn
-            ),
-            index,
+        _as_object(obj, index)
+        for obj in simulate_sheared(
+            settings.sim, settings.seed, base, [(g1, g2), (-g1, -g2)], add_noise=False,
+            rotate_shape=turn,
         )
-        for g in ((g1, g2), (-g1, -g2))
-    )
+    )  # fmt: skip
     snr = _target_snr(settings, index)
     sigma = _noise_sigma(settings, plus, snr)
     size = settings.sim.stamp_size
