@@ -15,6 +15,8 @@
     ├── EmptyCellError         a measurement was asked of a cell without inputs
     └── MetacalError           metacalibration cannot run on the given images
 
+Warnings: :class:`PsfStampWarning`, a coadd PSF stamp that leaves out too much of the flux.
+
 Errors that were ``ValueError`` before keep that base too, so existing ``except
 ValueError`` clauses still catch them.
 """
@@ -78,3 +80,8 @@ class EmptyCellError(CellCoaddError, ValueError):
 
 class MetacalError(CellCoaddError, ValueError):
     """Metacalibration cannot run on the given images."""
+
+
+class PsfStampWarning(UserWarning):
+    """A coadd PSF stamp leaves out more of the PSF's flux than it should (names the cell
+    and the fraction outside the stamp); the stamp is renormalised to unit sum."""
