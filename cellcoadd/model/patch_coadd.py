@@ -39,7 +39,9 @@ from cellcoadd.model.units import (
 #: 1.1: FITS ``DATACRC`` keywords. 1.2: ``units`` is an astropy unit string (``"nJy"`` or
 #: ``"count"``) and ``zero_point`` a field (older files' free text is mapped on reading),
 #: ``BuildConfig.units``; ``BUNIT``/``MAGZERO``/``MP_*`` keywords and attributes.
-FORMAT_VERSION = "1.2"
+#: 1.3: a ``psf_flux_outside`` column in the inputs tables (NaN when read from older
+#: files); ``BuildConfig.psf_size`` may be left out (builds record the size they used).
+FORMAT_VERSION = "1.3"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)
@@ -232,8 +234,9 @@ class PatchMetadata(BaseModel):
 
     @property
     def psf_size(self) -> int:
-        """Side of the PSF stamp, pixels (from ``build_config``)."""
-        return self.build_config.psf_size
+        """Side of the PSF stamp, pixels (from ``build_config``; when it leaves the size out,
+        the size a build uses for these cells, :meth:`BuildConfig.resolved`)."""
+        return self.build_config.resolved(self.skymap_config.cell_outer).stamp_size
 
     @property
     def cell_inner(self) -> int:
