@@ -10,8 +10,9 @@ real builder (``mode="coadd"``), on all epochs jointly in their own pixels
 ``m1 = (g+_1 - g-_1) / (2 g_true) - 1``,  ``c_i = (g+_i + g-_i) / 2``,
 
 with ``g+-`` the calibrated mean shears ``(R + R_S)^-1 <e>`` under the paper's cuts
-(S/N > 10, T/T_psf > 0.5) and jackknife errors over objects, a pair's two members
-removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
+(S/N > 10, T/T_psf > 0.5; T/T_psf > 1 for ``wmom`` shapes,
+:data:`~cellcoadd.shear.response.WMOM_CUTS`) and jackknife errors over objects, a pair's
+two members removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
 through is described in :mod:`cellcoadd.pipelines.stamp_pairs`.
 
 Objects run in chunks on any ``concurrent.futures`` executor (a local process pool for
@@ -54,7 +55,7 @@ from cellcoadd.pipelines.validation_settings import (
     stamp_cell,
 )
 from cellcoadd.shear.metacal import METACAL_TYPES, ReconvolutionKind
-from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
+from cellcoadd.shear.response import cuts_for_shape, multiplicative_bias, shear_response
 from cellcoadd.shear.shapes import SHAPE_DTYPE, WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
@@ -213,17 +214,18 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     if settings.method == "anacal":
         return summarize_anacal(settings, catalogue, _group(settings, catalogue))
     plus, minus = catalogue.plus, catalogue.minus
+    cuts = cuts_for_shape(settings.shape)
     bias = multiplicative_bias(
         plus,
         minus,
         true_g=settings.sim.shear[0],
         step=settings.step,
-        selection=PAPER_CUTS,
+        selection=cuts,
         group=_group(settings, catalogue),
     )
-    kept_plus = PAPER_CUTS(plus["noshear"])
-    kept_minus = PAPER_CUTS(minus["noshear"])
-    response = shear_response(plus, step=settings.step, selection=PAPER_CUTS)
+    kept_plus = cuts(plus["noshear"])
+    kept_minus = cuts(minus["noshear"])
+    response = shear_response(plus, step=settings.step, selection=cuts)
     s2n = plus["noshear"]["s2n"][np.isfinite(plus["noshear"]["s2n"])]
     cpu = float(catalogue.cpu_seconds.sum())
     return {
