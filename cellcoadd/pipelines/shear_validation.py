@@ -23,16 +23,20 @@ chunking.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
+from cellcoadd.errors import ConfigError
+from cellcoadd.io._files.atomic import atomic_write
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
@@ -118,6 +122,21 @@ class PairCatalogue:
             cpu_seconds=np.array([pair.cpu_seconds for pair in pairs], dtype=np.float64),
         )
 
+    def select(self, start: int, stop: int) -> PairCatalogue:
+        """The pairs with ``start <= index < stop``."""
+        keep = (self.index >= start) & (self.index < stop)
+        if keep.all():
+            return self
+        return PairCatalogue(
+            index=self.index[keep],
+            plus={t: rows[keep] for t, rows in self.plus.items()},
+            minus={t: rows[keep] for t, rows in self.minus.items()},
+            noise_sigma=self.noise_sigma[keep],
+            snr=self.snr[keep],
+            n_inputs=self.n_inputs[keep],
+            cpu_seconds=self.cpu_seconds[keep],
+        )
+
     @classmethod
     def concatenate(cls, catalogues: Sequence[PairCatalogue]) -> PairCatalogue:
         """Join catalogues (e.g. chunks or index ranges of a run), ordered by index."""
@@ -137,6 +156,57 @@ class PairCatalogue:
             n_inputs=join("n_inputs"),
             cpu_seconds=join("cpu_seconds"),
         )
+
+    def save(self, path: str | os.PathLike[str], settings: ValidationSettings) -> None:
+        """Write the catalogue and the settings that made it to ``path`` (a NumPy ``.npz``
+        archive, written atomically: a run killed while writing leaves the previous one).
+        """
+        arrays: dict[str, np.ndarray] = {
+            "settings": np.array(settings.model_dump_json()),
+            "types": np.array(list(self.plus)),
+            "index": self.index,
+            "noise_sigma": self.noise_sigma,
+            "snr": self.snr,
+            "n_inputs": self.n_inputs,
+            "cpu_seconds": self.cpu_seconds,
+        }
+        for name in self.plus:
+            arrays[f"plus/{name}"] = self.plus[name]
+            arrays[f"minus/{name}"] = self.minus[name]
+
+        def write(temporary: Path) -> None:
+            with temporary.open("wb") as stream:
+                np.savez(stream, **arrays)  # type: ignore[arg-type]  # names as keywords
+
+        atomic_write(path, write, overwrite=True)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], settings: ValidationSettings) -> PairCatalogue:
+        """The catalogue :meth:`save` wrote to ``path``.
+
+        Raises
+        ------
+        ConfigError
+            When the file was written by a run with other settings (its pairs would
+            not belong to this run).
+        """
+        with np.load(path, allow_pickle=False) as archive:
+            stored = ValidationSettings.model_validate_json(str(archive["settings"]))
+            if stored != settings:
+                raise ConfigError(
+                    f"{os.fspath(path)}: checkpoint of a run with other settings; remove it "
+                    "or resume with the settings it was written with"
+                )
+            types = [str(t) for t in archive["types"]]
+            return cls(
+                index=archive["index"],
+                plus={t: archive[f"plus/{t}"] for t in types},
+                minus={t: archive[f"minus/{t}"] for t in types},
+                noise_sigma=archive["noise_sigma"],
+                snr=archive["snr"],
+                n_inputs=archive["n_inputs"],
+                cpu_seconds=archive["cpu_seconds"],
+            )
 
 
 def _rows(records: list[np.ndarray]) -> np.ndarray:
@@ -160,11 +230,20 @@ def run_pairs(
     scheduler: object | None = None,
     chunk_size: int | None = None,
     progress: bool = True,
+    checkpoint: str | os.PathLike[str] | None = None,
+    checkpoint_every: int = 1000,
 ) -> PairCatalogue:
     """Measure objects ``first_index .. first_index + n_objects - 1``.
 
     Arguments are those of :func:`validate_shear`; ``first_index`` lets a long run be
     split into index ranges whose catalogues :meth:`PairCatalogue.concatenate` joins.
+
+    With ``checkpoint`` (a file path), the pairs measured so far are written there
+    (:meth:`PairCatalogue.save`) each time ``checkpoint_every`` more have finished, and at
+    the end; a run started with an existing checkpoint of the same settings measures only
+    the objects of its range the file lacks, so a killed run resumes without losing or
+    measuring twice any pair, and gives the catalogue an uninterrupted run gives. Pairs
+    of the file outside the range are kept in it but not returned.
 
     Returns
     -------
@@ -177,32 +256,55 @@ def run_pairs(
         )
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    pool, release = resolve_executor(executor, workers, scheduler)
+    if checkpoint_every < 1:
+        raise ConfigError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    stop = first_index + n_objects
+    done: list[PairCatalogue] = []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        done.append(PairCatalogue.load(checkpoint, settings))
+    have = set(done[0].index.tolist()) if done else set()
+    todo = [i for i in range(first_index, stop) if i not in have]
+    pool, release = resolve_executor(executor, workers, scheduler) if todo else (None, None)
     if chunk_size is None:
         # several chunks per worker keep the pool busy and the progress bar moving
         slots = 1 if pool is None else 4 * max(workers, 2)
-        chunk_size = int(np.clip(np.ceil(n_objects / slots), 1, 25))
-    stop = first_index + n_objects
-    chunks = [range(a, min(a + chunk_size, stop)) for a in range(first_index, stop, chunk_size)]
-    done: list[PairCatalogue] = []
+        chunk_size = int(np.clip(np.ceil(max(len(todo), 1) / slots), 1, 25))
+    chunks = [todo[a : a + chunk_size] for a in range(0, len(todo), chunk_size)]
     bar = tqdm(
-        total=n_objects, desc=f"shear bias ({settings.mode})", unit="pair", disable=not progress
+        total=n_objects,
+        initial=n_objects - len(todo),
+        desc=f"shear bias ({settings.mode})",
+        unit="pair",
+        disable=not progress,
     )
+    since_saved = 0
+
+    def finished(catalogue: PairCatalogue) -> None:
+        nonlocal since_saved
+        done.append(catalogue)
+        bar.update(len(catalogue))
+        since_saved += len(catalogue)
+        if checkpoint is not None and since_saved >= checkpoint_every:
+            done[:] = [PairCatalogue.concatenate(done)]
+            done[0].save(checkpoint, settings)
+            since_saved = 0
+
     try:
         if pool is None:
             for chunk in chunks:
-                done.append(measure_pairs(settings, chunk))
-                bar.update(len(chunk))
+                finished(measure_pairs(settings, chunk))
         else:
-            futures = {pool.submit(measure_pairs, settings, chunk): chunk for chunk in chunks}
+            futures = [pool.submit(measure_pairs, settings, chunk) for chunk in chunks]
             for future in as_completed(futures):
-                done.append(future.result())
-                bar.update(len(futures[future]))
+                finished(future.result())
     finally:
         bar.close()
         if release is not None:
             release()
-    return PairCatalogue.concatenate(done)
+    result = PairCatalogue.concatenate(done)
+    if checkpoint is not None and since_saved:
+        result.save(checkpoint, settings)
+    return result.select(first_index, stop)
 
 
 def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
@@ -275,6 +377,8 @@ def validate_shear(
     bfd_templates: int = 100,
     bfd_template_sample: Literal["independent", "targets"] = "independent",
     bfd_oversample: int = BFD_OVERSAMPLE,
+    checkpoint: str | os.PathLike[str] | None = None,
+    checkpoint_every: int = 1000,
 ) -> dict[str, Any]:
     """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
@@ -341,6 +445,11 @@ def validate_shear(
         :data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`, 4: accurate
         shear derivatives for small galaxies; 1, the stamp's own FFT grid, biases m1 by
         a few per cent; see ``docs/validation.md``).
+    checkpoint : path-like, optional
+        File the measured pairs are saved to every ``checkpoint_every`` pairs; an
+        existing one of the same settings is resumed (see :func:`run_pairs`).
+    checkpoint_every : int
+        Pairs between checkpoints.
 
     Returns
     -------
@@ -390,6 +499,8 @@ def validate_shear(
         scheduler=scheduler,
         chunk_size=chunk_size,
         progress=progress,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
     )
     result = summarize(settings, measured)
     result["wall_seconds"] = time.perf_counter() - start
