@@ -77,7 +77,12 @@ class BuildConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     n_noise: int = Field(3, ge=0, le=64)
-    psf_size: int | None = Field(None, ge=3)
+    psf_size: int | None = Field(
+        None,
+        ge=3,
+        description="odd side of the coadd PSF stamp, px; left out: 75, or the largest odd "
+        "size the cells' outer box holds",
+    )
     kernel: Literal["lanczos3"] = "lanczos3"
     max_mask_fraction: float = Field(0.1, ge=0.0, le=1.0)
     bad_mask_bits: tuple[str, ...] = ("BAD", "SAT", "CR", "NO_DATA", "EDGE")

@@ -123,6 +123,9 @@ def build_config_toml(config: BuildConfig) -> str:
         value = getattr(config, name)
         if field.description:
             lines.append(f"# {name}: {field.description}")
+        if value is None:  # TOML has no null: a field left out keeps its default
+            lines.append(f"# {name} = (left out: the default)")
+            continue
         lines.append(f"{name} = {json.dumps(list(value) if isinstance(value, tuple) else value)}")
     return "\n".join(lines) + "\n"
 
