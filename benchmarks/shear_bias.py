@@ -25,7 +25,8 @@ Usage::
     .venv/bin/python benchmarks/shear_bias.py --rows bfd-coadd,bfd-multi-epoch --n-objects 300,100
     .venv/bin/python benchmarks/shear_bias.py --shape wmom --rows metacal-coadd,metacal-single \
         --target-sigma 5e-3,4e-4
-    .venv/bin/python benchmarks/shear_bias.py --scheduler tcp://127.0.0.1:8786 --n-objects 100000
+    .venv/bin/python benchmarks/shear_bias.py --scheduler tcp://127.0.0.1:8786 --n-objects 100000 \\
+        --checkpoint-dir runs/ --checkpoint-every 2000      # a killed run resumes from runs/
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 from typing import Any
 
 from cellcoadd.pipelines import validate_shear
@@ -153,6 +155,12 @@ def main() -> None:
     parser.add_argument(
         "--target-sigma", default=str(PAPER_SIGMA_M), help="sigma_m values to cost, comma-separated"
     )
+    parser.add_argument(
+        "--checkpoint-dir",
+        help="save each row's pairs to <dir>/<row>-seed<seed>.npz as they finish; a rerun "
+        "resumes from there (--checkpoint-every pairs between saves)",
+    )
+    parser.add_argument("--checkpoint-every", type=int, default=1000)
     parser.add_argument("--json", help="also write the results to this JSON file")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args()
@@ -179,11 +187,17 @@ def main() -> None:
             options["bfd_templates"] = args.bfd_templates
         described.append(f"{row}: {n_objects} pairs, {describe_settings(options)}")
         print(described[-1], flush=True)
+        checkpoint = None
+        if args.checkpoint_dir:
+            os.makedirs(args.checkpoint_dir, exist_ok=True)
+            checkpoint = os.path.join(args.checkpoint_dir, f"{row}-seed{args.seed}.npz")
         result = validate_shear(
             n_objects=n_objects,
             seed=args.seed,
             workers=args.workers,
             scheduler=args.scheduler,
+            checkpoint=checkpoint,
+            checkpoint_every=args.checkpoint_every,
             coadd_pixel_scale=args.coadd_pixel_scale,
             progress=not args.quiet,
             **options,

@@ -95,6 +95,8 @@ their facts (they cross process boundaries in parallel builds)::
     ├── CellCoaddFloatingPointError           non-finite results (FloatingPointError)
     ├── MissingDependencyError (ImportError)  an optional dependency is not installed
     └── CellCoaddNotImplementedError          a feature not supported here
+
+Warnings: :class:`PsfStampWarning`, a coadd PSF stamp that leaves out too much of the flux.
 """
 
 from __future__ import annotations
@@ -461,3 +463,8 @@ class MissingDependencyError(CellCoaddError, ImportError):
 
 class CellCoaddNotImplementedError(CellCoaddError, NotImplementedError):
     """A feature that is not supported here (the message says what to use instead)."""
+
+
+class PsfStampWarning(UserWarning):
+    """A coadd PSF stamp leaves out more of the PSF's flux than it should (names the cell
+    and the fraction outside the stamp); the stamp is renormalised to unit sum."""

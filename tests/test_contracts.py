@@ -33,10 +33,14 @@ def test_every_error_is_a_cellcoadd_error():
     classes = [
         value
         for value in vars(errors_module).values()
-        if isinstance(value, type) and issubclass(value, Exception)
+        if isinstance(value, type)
+        and issubclass(value, Exception)
+        and not issubclass(value, Warning)
     ]
     assert len(classes) >= 10
     assert all(issubclass(cls, cellcoadd.CellCoaddError) for cls in classes)
+    # warnings are warnings, which a filter can silence
+    assert issubclass(errors_module.PsfStampWarning, UserWarning)
     # the public names are the same objects as their homes'
     assert cellcoadd.ExposureError is errors_module.ExposureError
     assert cellcoadd.CellBuildError is errors_module.CellBuildError

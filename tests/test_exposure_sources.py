@@ -10,11 +10,12 @@ import weakref
 import galsim
 import numpy as np
 import pytest
-from exposure_factory import make_exposure
+from exposure_factory import make_exposure, make_wcs
 
 from cellcoadd import BuildConfig, Exposure, MaskBits, SkyMap, SkyMapConfig, build_cell, build_patch
+from cellcoadd.errors import ExposureError
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.wcs_utils import shifted_wcs
+from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.model.sources import ExposureHeader, ExposureSource, cutout_box
 
 SKY = SkyMapConfig(
@@ -167,3 +168,28 @@ def test_exposure_files_load_cutouts(tmp_path, tract):
     # a cutout written and read again keeps its place on the detector
     again = read_exposure(write_exposure(cut, tmp_path / "cut.fits"))
     assert again.origin == (40, 25)
+
+
+def test_replace_keeps_the_canonical_wcs_and_validates_the_rest():
+    """Exposure.replace shares the (canonical) WCS instead of converting it again, gives
+    what dataclasses.replace gives, converts a new WCS, and still validates every field."""
+    exposure = make_exposure((30.0, -10.0), sip=True, rotation_deg=17.0, visit=3, detector=9)
+    copy = exposure.replace(image=exposure.image + 1.0, detector=10)
+    assert copy.wcs is exposure.wcs and copy.detector == 10
+    reference = dataclasses.replace(exposure, image=exposure.image + 1.0, detector=10)
+    assert copy.wcs.to_header_string(relax=True) == reference.wcs.to_header_string(relax=True)
+    for name in ("crpix", "crval", "pc", "cdelt"):
+        np.testing.assert_array_equal(getattr(copy.wcs.wcs, name), getattr(reference.wcs.wcs, name))
+    np.testing.assert_array_equal(copy.wcs.sip.a, reference.wcs.sip.a)
+    np.testing.assert_array_equal(
+        copy.local_jacobian(20.5, 70.0), reference.local_jacobian(20.5, 70.0)
+    )
+
+    raw = make_wcs((30.0, -10.0), (160, 160), 0.26, rotation_deg=40.0, sip=True)
+    moved = exposure.replace(wcs=raw)
+    assert moved.wcs is not raw
+    assert moved.wcs.to_header_string(relax=True) == canonical_wcs(raw).to_header_string(relax=True)
+    with pytest.raises(ExposureError, match=r"visit=3, detector=9.*mask"):
+        exposure.replace(mask=np.full((3, 3), 0, dtype=np.int32))
+    with pytest.raises(ExposureError, match="non-finite"):
+        exposure.replace(image=np.full(exposure.shape, np.nan))

@@ -29,6 +29,8 @@ from cellcoadd.sim import (
     draw_ellipticities,
     draw_psf_parameters,
     simulate_field,
+    simulate_object,
+    simulate_sheared,
     simulate_stamp_pair,
     simulate_stamps,
 )
@@ -172,6 +174,26 @@ def test_matched_pair_shares_everything_but_the_shear():
             np.testing.assert_allclose(
                 ep.image - em.image, ecp.image - ecm.image, rtol=0, atol=1e-9
             )
+
+
+def test_sheared_members_equal_separate_simulations_and_share_one_wcs():
+    """simulate_sheared makes each epoch's WCS once for all members, and each member is
+    bit for bit the object simulate_object makes alone (WCS header, image, truth)."""
+    config = SimConfig(n_epochs=3)
+    shears = [(0.02, 0.0), (-0.02, 0.0), (0.0, 0.01)]
+    together = simulate_sheared(config, 5, 4, shears, add_noise=True, rotate_shape=True)
+    for obj, shear in zip(together, shears, strict=True):
+        alone = simulate_object(config, 5, 4, shear, rotate_shape=True)
+        assert (obj.truth.g1, obj.truth.g2) == shear
+        assert obj.truth == alone.truth
+        for a, b in zip(obj.exposures, alone.exposures, strict=True):
+            np.testing.assert_array_equal(a.image, b.image)
+            assert a.wcs.to_header_string() == b.wcs.to_header_string()
+            np.testing.assert_array_equal(a.wcs.wcs.pc, b.wcs.wcs.pc)
+            np.testing.assert_array_equal(a.wcs.wcs.cdelt, b.wcs.wcs.cdelt)
+            np.testing.assert_array_equal(a.wcs.wcs.crpix, b.wcs.wcs.crpix)
+    for epoch in range(config.n_epochs):
+        assert len({id(obj.exposures[epoch].wcs) for obj in together}) == 1
 
 
 # -- determinism ----------------------------------------------------------------------

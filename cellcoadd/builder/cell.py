@@ -43,7 +43,7 @@ from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping, footprint_box
-from cellcoadd.builder.psf import PsfError, psf_moments
+from cellcoadd.builder.psf import PsfError, psf_moments, warn_truncated_psfs
 from cellcoadd.builder.select import Candidate, Rejection, select_exposure
 from cellcoadd.errors import CellCoaddValueError, ConfigError
 from cellcoadd.geometry.box import Box
@@ -117,16 +117,16 @@ class CellBlock:
         config = settings.config
         for cell in self.cells:
             self.current = cell
-            if config.psf_size > min(cell.outer_bbox.shape):
+            if config.stamp_size > min(cell.outer_bbox.shape):
                 raise ConfigError(
-                    f"psf_size {config.psf_size} exceeds the outer box {cell.outer_bbox} of "
+                    f"psf_size {config.stamp_size} exceeds the outer box {cell.outer_bbox} of "
                     f"cell {cell.index}",
-                    value=config.psf_size,
+                    value=config.stamp_size,
                     cell=cell.index,
                 )
         self.settings, self.config = settings, config
         self.sums = BlockSums(
-            [cell.outer_bbox for cell in self.cells], config.n_noise, config.psf_size
+            [cell.outer_bbox for cell in self.cells], config.n_noise, config.stamp_size
         )
         self.records: list[list[InputRecord]] = [[] for _ in cells]
         self.jacobians = [cell_jacobian(cell) for cell in cells]
@@ -225,7 +225,7 @@ class CellBlock:
                 self._reject(i, exposure, found)
                 continue
             try:
-                psf_stamp = coadd_psf_contribution(cell, found, self.config.psf_size)
+                psf_stamp = coadd_psf_contribution(cell, found, self.config.stamp_size)
             except PsfError:
                 self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
                 continue
@@ -267,7 +267,7 @@ class CellBlock:
         for i, found, psf_stamp in members:
             if psf_stamp is None:
                 try:
-                    psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.psf_size)
+                    psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.stamp_size)
                 except PsfError:
                     status = Rejection(InputStatus.BAD_PSF, found.overlap_fraction)
                     self._reject(i, exposure, status)
@@ -306,6 +306,8 @@ class CellBlock:
         :meth:`BlockSums.add`)."""
         self.sums.add_psf(i, psf_stamp, found.weight)
         moments = psf_moments(psf_stamp, self.jacobians[i])
+        # the model was drawn with unit flux: what the stamp lacks lies outside it
+        moments["psf_flux_outside"] = float(1.0 - psf_stamp.sum())
         self.records[i].append(
             input_record(
                 exposure,
@@ -405,7 +407,9 @@ def build_cells(
     block = CellBlock(cells, build.settings)
     for item, frame in zip(build.inputs, build.frames, strict=True):
         block.add(item, frame)
-    return block.finish()
+    coadds = block.finish()
+    warn_truncated_psfs(coadds)
+    return coadds
 
 
 def build_cell(

@@ -181,6 +181,7 @@ def input_record(
         psf_e1=fields.pop("psf_e1", float("nan")),
         psf_e2=fields.pop("psf_e2", float("nan")),
         psf_T=fields.pop("psf_T", float("nan")),
+        psf_flux_outside=fields.pop("psf_flux_outside", float("nan")),
     )
 
 
@@ -211,7 +212,7 @@ def finish_cell(
     }
     if sums.weight <= 0.0:
         return CellCoadd.empty(
-            n_noise=config.n_noise, psf_size=config.psf_size, mask_bits=mask_bits, **common
+            n_noise=config.n_noise, psf_size=config.stamp_size, mask_bits=mask_bits, **common
         )
     total = sums.weight
     psf = sums.psf / sums.psf.sum()

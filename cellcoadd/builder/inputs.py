@@ -87,7 +87,7 @@ class BuildSettings:
     Attributes
     ----------
     config : BuildConfig
-        Build settings.
+        Build settings, with ``psf_size`` resolved for the cells (:meth:`BuildConfig.resolved`).
     seed : int
         Seed of the noise realizations.
     mask_bits : MaskBits
@@ -248,6 +248,8 @@ def prepare(
     if not cells:
         raise ConfigError("a block needs at least one cell")
     area = area or Box.enclosing([cell.outer_bbox for cell in cells])
+    # a psf_size left out is fixed here, for the smallest outer box of the build
+    config = config.resolved(min(min(cell.outer_bbox.shape) for cell in cells))
     settings = BuildSettings(config, seed, mask_bits, band, area, record_distant)
     given = list(frames) if frames is not None else [None] * len(inputs)
     tract_wcs = cells[0].tract_wcs

@@ -41,6 +41,7 @@ from cellcoadd.builder.cell import CellBlock
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
+from cellcoadd.builder.psf import warn_truncated_psfs
 from cellcoadd.errors import CellBuildError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -364,9 +365,10 @@ def build_patch(
         units=config.units,
         zero_point=config.zero_point,
         mask_bits=build.settings.mask_bits,
-        build_config=config,
+        build_config=build.settings.config,  # psf_size resolved
         software_version=__version__,
         format_version=FORMAT_VERSION,
     )
     ordered = {cell.index: results[cell.index] for cell in cells}
+    warn_truncated_psfs(ordered.values())  # here: warnings in worker processes are lost
     return PatchCoadd(metadata=metadata, cells=ordered)

@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Iterable
+
 import galsim
 import numpy as np
 
-from cellcoadd.errors import PsfError
+from cellcoadd.errors import PsfError, PsfStampWarning
 from cellcoadd.geometry.box import Box
+from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.psf import PSF_FLUX_TOLERANCE
 
 #: Smallest fraction of a PSF's unit flux its drawn stamp may hold.
 MIN_STAMP_FLUX = 0.5
+
+#: Fraction of the PSF's flux outside a cell's PSF stamp above which a build warns.
+PSF_FLUX_OUTSIDE_LIMIT = 1e-4
 
 
 def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.ndarray:
@@ -101,3 +108,24 @@ def psf_moments(stamp: np.ndarray, jacobian: np.ndarray) -> dict[str, float]:
         "psf_e2": float(2.0 * sky[0, 1] / size),
         "psf_T": size,
     }
+
+
+def warn_truncated_psfs(coadds: Iterable[CellCoadd], limit: float = PSF_FLUX_OUTSIDE_LIMIT) -> None:
+    """Warn (:class:`~cellcoadd.errors.PsfStampWarning`, once for all ``coadds``) when
+    cells' PSF stamps leave out more than ``limit`` of the PSF's flux
+    (:attr:`CellCoadd.psf_flux_outside`), naming the worst cell."""
+    lost = [(c.psf_flux_outside, c) for c in coadds if c.psf_flux_outside > limit]
+    if not lost:
+        return
+    worst, cell = max(lost, key=lambda item: item[0])
+    size = cell.psf.shape[0]
+    warnings.warn(
+        PsfStampWarning(
+            f"{len(lost)} cell(s) lose more than {limit:g} of the PSF's flux outside the "
+            f"{size}-pixel PSF stamp, up to {worst:.2e} in cell {cell.index} of tract "
+            f"{cell.tract}; the stamps are renormalised to unit sum, which changes the PSF's "
+            "size: a larger BuildConfig.psf_size keeps more (psf_flux_outside is recorded "
+            "per input)"
+        ),
+        stacklevel=3,
+    )

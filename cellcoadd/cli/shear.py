@@ -154,6 +154,26 @@ def _finite_or_null(value: object) -> object:
     show_default=True,
     help="Coadd pixel scale, arcsec (0.27: the exposures' scale).",
 )
+@click.option(
+    "--checkpoint",
+    type=click.Path(dir_okay=False),
+    help="Save the measured pairs here every --checkpoint-every pairs; an existing file of "
+    "the same settings is resumed (a killed run loses and repeats no pair).",
+)
+@click.option(
+    "--checkpoint-every",
+    type=click.IntRange(min=1),
+    default=1000,
+    show_default=True,
+    help="Pairs between checkpoints.",
+)
+@click.option(
+    "--target-sigma",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=4e-4,
+    show_default=True,
+    help="Print the pairs and CPU hours this sigma(m1) would take (the paper's: 4e-4).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 @quiet_option
 def validate_shear(
@@ -172,6 +192,9 @@ def validate_shear(
     workers: int,
     scheduler: str | None,
     coadd_pixel_scale: float,
+    checkpoint: str | None,
+    checkpoint_every: int,
+    target_sigma: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -199,6 +222,8 @@ def validate_shear(
       cellcoadd validate-shear --mode multi-epoch --n-objects 16 --snr 10000
       cellcoadd validate-shear --mode single --n-objects 40 --snr 10000
       cellcoadd validate-shear --n-objects 2000 --snr 10,50 --workers 2
+      cellcoadd validate-shear --n-objects 100000 --snr 10,50 --scheduler tcp://host:8786 \\
+          --checkpoint run.npz --checkpoint-every 2000
       cellcoadd validate-shear --n-objects 20 --snr 1000 --json --quiet
       cellcoadd validate-shear --shape wmom --n-objects 400 --snr 10,50
       cellcoadd validate-shear --method bfd --n-objects 200 --snr 20
@@ -247,6 +272,8 @@ def validate_shear(
         scheduler=scheduler,
         coadd_pixel_scale=coadd_pixel_scale,
         progress=not quiet,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
         method=method,  # type: ignore[arg-type]
         shape=shape,  # type: ignore[arg-type]
         wmom_fwhm=wmom_fwhm,
@@ -268,6 +295,19 @@ def validate_shear(
             f"({result['cpu_seconds'] / result['n_objects']:.2f} s per pair)"
         )
         click.echo(precision_advice(result["m1_err"], result["n_objects"]))
+        click.echo(
+            target_cost(result["m1_err"], result["n_objects"], result["cpu_seconds"], target_sigma)
+        )
+
+
+def target_cost(m1_err: float, n_objects: int, cpu_seconds: float, target: float) -> str:
+    """The pairs and CPU hours a run of the same settings needs for ``sigma(m1) = target``
+    (the error falls as 1/sqrt(N), the CPU grows as N)."""
+    if not (math.isfinite(m1_err) and m1_err > 0.0 and n_objects > 0):
+        return f"sigma_m = {target:g}: no estimate (no error on m1)"
+    needed = n_objects * (m1_err / target) ** 2
+    hours = needed * cpu_seconds / n_objects / 3600.0
+    return f"sigma_m = {target:g} needs ~{needed:.2g} pairs, ~{hours:.3g} CPU hours"
 
 
 def expected_precision(snr_text: str | None, n_objects: int, shear: float = DEFAULT_SHEAR) -> str:
@@ -307,4 +347,4 @@ def precision_advice(m1_err: float, n_objects: int, target: float = TARGET_M_ERR
     )
 
 
-__all__ = ["expected_precision", "parse_snr", "precision_advice", "validate_shear"]
+__all__ = ["expected_precision", "parse_snr", "precision_advice", "target_cost", "validate_shear"]

@@ -16,6 +16,14 @@ from cellcoadd.model.units import (
     normalise_unit,
 )
 
+#: Default side of the coadd PSF stamp, coadd pixels: at 0.2 arcsec per pixel it holds
+#: all but 7e-5 of the flux of the simulator's widest Moffat PSF (beta = 3.5, FWHM 1.15
+#: arcsec; 1.2e-3 is lost at 35 pixels, 4.6e-4 at 51). A 0.7" Kolmogorov PSF, whose wings
+#: fall as r^(-11/3), still loses 1.5e-3 (5.4e-3 at 35; 2e-4 at 249, the whole outer box
+#: of a default cell): see ``InputRecord.psf_flux_outside`` and
+#: :class:`~cellcoadd.errors.PsfStampWarning`.
+DEFAULT_PSF_SIZE = 75
+
 
 class BuildConfig(BaseModel):
     """How cells are coadded (frozen; written into every output file).
@@ -24,8 +32,15 @@ class BuildConfig(BaseModel):
     ----------
     n_noise : int
         Number K of noise realizations per cell.
-    psf_size : int
-        Side of the odd, square coadd PSF stamp, coadd pixels.
+    psf_size : int, optional
+        Side of the odd, square coadd PSF stamp, coadd pixels. Left out (None), a build
+        uses :data:`DEFAULT_PSF_SIZE` (75), or the largest odd size the cells' outer box
+        holds if that is smaller (:meth:`resolved`); the coadds' metadata records the
+        size used. The flux of each input's PSF outside the stamp is measured and
+        recorded (``InputRecord.psf_flux_outside``); the stamp is renormalised to unit
+        sum, so a stamp too small for the PSF changes its size (a few 1e-3 of flux lost
+        at 35 pixels for a 0.7" Kolmogorov PSF biases shear estimators that use the PSF
+        stamp's normalisation, such as BFD, by ~1e-3).
     kernel : "lanczos3"
         Resampling kernel (normalised Lanczos-3; the only one offered).
     max_mask_fraction : float
@@ -64,7 +79,12 @@ class BuildConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     n_noise: int = Field(3, ge=0, le=64)
-    psf_size: int = Field(35, ge=3)
+    psf_size: int | None = Field(
+        None,
+        ge=3,
+        description="odd side of the coadd PSF stamp, px; left out: 75, or the largest odd "
+        "size the cells' outer box holds",
+    )
     kernel: Literal["lanczos3"] = "lanczos3"
     max_mask_fraction: float = Field(0.1, ge=0.0, le=1.0)
     bad_mask_bits: tuple[str, ...] = ("BAD", "SAT", "CR", "NO_DATA", "EDGE")
@@ -143,9 +163,36 @@ class BuildConfig(BaseModel):
             return preset
         return value
 
+    def resolved(self, outer_side: int) -> BuildConfig:
+        """This configuration with ``psf_size`` set for cells whose outer box has
+        ``outer_side`` pixels on its shorter side (itself when ``psf_size`` is set).
+
+        Left out, ``psf_size`` becomes :data:`DEFAULT_PSF_SIZE` or the largest odd size
+        not exceeding ``outer_side``, whichever is smaller.
+        """
+        if self.psf_size is not None:
+            return self
+        largest = outer_side if outer_side % 2 else outer_side - 1
+        return self.model_copy(update={"psf_size": max(3, min(DEFAULT_PSF_SIZE, largest))})
+
+    @property
+    def stamp_size(self) -> int:
+        """``psf_size`` of a resolved configuration (:meth:`resolved`).
+
+        Raises
+        ------
+        ConfigError
+            When ``psf_size`` was left out and not resolved for a cell size.
+        """
+        if self.psf_size is None:
+            raise ConfigError("psf_size is not set: resolve it for the cells' outer box first")
+        return self.psf_size
+
     @field_validator("psf_size")
     @classmethod
-    def _odd(cls, size: int) -> int:
+    def _odd(cls, size: int | None) -> int | None:
+        if size is None:
+            return None
         if size % 2 == 0:
             raise ConfigError(
                 f"psf_size must be odd so the stamp has a central pixel, got {size}", value=size

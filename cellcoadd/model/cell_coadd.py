@@ -232,6 +232,22 @@ class CellCoadd:
         return int(self.noise.shape[0])
 
     @property
+    def psf_flux_outside(self) -> float:
+        """Fraction of the coadd PSF's flux that falls outside the ``psf`` stamp.
+
+        The weighted mean of the used inputs' ``psf_flux_outside`` (with their coadd
+        weights, as the coadd PSF is their weighted mean): the stamp holds ``1 - f`` of
+        the flux and was renormalised to unit sum. NaN for an empty cell or inputs
+        recorded without it (files before format 1.3).
+        """
+        used = [r for r in self.inputs if r.is_used]
+        if not used:
+            return float("nan")
+        weights = np.array([r.weight for r in used])
+        values = np.array([r.psf_flux_outside for r in used])
+        return float(np.sum(weights * values) / np.sum(weights))
+
+    @property
     def is_empty(self) -> bool:
         """Whether no input contributed (then the planes hold no data)."""
         return self.n_used == 0

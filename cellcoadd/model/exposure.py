@@ -22,6 +22,7 @@ Profiles and stamps must have unit flux (:data:`~cellcoadd.model.psf.PSF_FLUX_TO
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 from collections.abc import Callable
 from dataclasses import InitVar, dataclass, field
@@ -84,8 +85,9 @@ class Exposure:
 
     Notes
     -----
-    Frozen: fields are validated once, at construction; use ``dataclasses.replace`` for
-    a modified copy (validated again).
+    Frozen: fields are validated once, at construction; use :meth:`replace` for a
+    modified copy (validated again, but a WCS it keeps is not put in canonical form a
+    second time, which ``dataclasses.replace`` would do).
     """
 
     image: np.ndarray
@@ -167,6 +169,18 @@ class Exposure:
         except PsfError as err:
             raise ExposureError(f"{name}: {err}") from None
         object.__setattr__(self, "_psf_model", model)
+
+    def replace(self, **changes: object) -> Exposure:
+        """A copy with ``changes`` (field names as keywords), validated like a new exposure.
+
+        When ``wcs`` is not changed the copy shares this exposure's WCS object, already in
+        canonical form: converting it again (~3 ms, the pickle round trip of
+        :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`) would give the same values.
+        A new ``wcs`` is converted unless ``wcs_is_canonical=True`` is passed with it.
+        """
+        if "wcs" not in changes:
+            changes["wcs_is_canonical"] = True
+        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]  # field names
 
     @property
     def key(self) -> tuple[int, int]:

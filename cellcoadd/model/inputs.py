@@ -58,6 +58,7 @@ FLOAT_FIELDS: tuple[str, ...] = (
     "psf_e2",
     "psf_T",
     "zero_point",
+    "psf_flux_outside",
 )
 
 
@@ -110,6 +111,11 @@ class InputRecord(BaseModel):
         standard deviation ``sigma`` (NaN allowed).
     zero_point : float
         Photometric zero point of the exposure, mag (NaN allowed).
+    psf_flux_outside : float
+        Fraction of the flux of the exposure's PSF model (unit flux, pixel included) that
+        falls outside the cell's coadd PSF stamp once warped onto the coadd grid: the
+        part the stamp's renormalisation to unit sum leaves out. NaN for rejected inputs
+        and in files written before format 1.3.
 
     Notes on the PSF moments: ``I`` are GalSim HSM adaptive (elliptical-Gaussian-weighted)
     second moments, equal to the unweighted ones for a Gaussian, of the exposure's PSF
@@ -156,6 +162,10 @@ class InputRecord(BaseModel):
         "pixel grid (2 sigma^2 for a round Gaussian)"
     )
     zero_point: float = Field(description="mag")
+    psf_flux_outside: float = Field(
+        float("nan"),
+        description="fraction of the PSF model's flux outside the cell's coadd PSF stamp",
+    )
 
     @field_validator("band")
     @classmethod

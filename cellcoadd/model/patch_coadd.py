@@ -58,6 +58,8 @@ from cellcoadd.model.units import (
 #: 1.3: optional ``observations`` and ``skymap_config.name``/``tangent_pixel`` (Rubin's
 #: sky map); compressed FITS float planes as floats with ``CCNFBITS``; WCS cards on every
 #: FITS pixel-plane HDU.
+#: also in 1.3: a ``psf_flux_outside`` column in the inputs tables (NaN when read from older
+#: files); ``BuildConfig.psf_size`` may be left out (builds record the size they used).
 FORMAT_VERSION = "1.3"
 
 #: The first format version whose ``units`` is an astropy unit string.
@@ -288,8 +290,9 @@ class PatchMetadata(BaseModel):
 
     @property
     def psf_size(self) -> int:
-        """Side of the PSF stamp, pixels (from ``build_config``)."""
-        return self.build_config.psf_size
+        """Side of the PSF stamp, pixels (from ``build_config``; when it leaves the size out,
+        the size a build uses for these cells, :meth:`BuildConfig.resolved`)."""
+        return self.build_config.resolved(self.skymap_config.cell_outer).stamp_size
 
     @property
     def cell_inner(self) -> int:

@@ -188,10 +188,10 @@ def measure_single_epoch(
     if settings.method == "bfd":
         centre = (int(round(x)), int(round(y)))
         return bfd_measurement(
-            settings, exposure.image, epoch_psf_image(exposure, *centre, settings.build.psf_size),
+            settings, exposure.image, epoch_psf_image(exposure, *centre, settings.build.stamp_size),
             exposure.local_jacobian(*centre), centre, noise_variance=sigma**2,
         )  # fmt: skip
-    psf = epoch_psf_image(exposure, x, y, settings.build.psf_size)
+    psf = epoch_psf_image(exposure, x, y, settings.build.stamp_size)
     if settings.method == "anacal":
         record = anacal_adapter.measure_fpfs(
             exposure.image, psf, noise, exposure.local_jacobian(x, y), sigma**2, (x, y),

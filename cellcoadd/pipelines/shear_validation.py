@@ -10,8 +10,9 @@ real builder (``mode="coadd"``), on all epochs jointly in their own pixels
 ``m1 = (g+_1 - g-_1) / (2 g_true) - 1``,  ``c_i = (g+_i + g-_i) / 2``,
 
 with ``g+-`` the calibrated mean shears ``(R + R_S)^-1 <e>`` under the paper's cuts
-(S/N > 10, T/T_psf > 0.5) and jackknife errors over objects, a pair's two members
-removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
+(S/N > 10, T/T_psf > 0.5; T/T_psf > 1 for ``wmom`` shapes,
+:data:`~cellcoadd.shear.response.WMOM_CUTS`) and jackknife errors over objects, a pair's
+two members removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
 through is described in :mod:`cellcoadd.pipelines.stamp_pairs`.
 
 Objects run in chunks on any ``concurrent.futures`` executor (a local process pool for
@@ -22,6 +23,7 @@ chunking.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
@@ -31,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cellcoadd.builder.executors import resolve_executor
-from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ShearError
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ConfigError, ShearError
 from cellcoadd.pipelines.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.bfd_validation import summarize_bfd
 from cellcoadd.pipelines.bias_table import (
@@ -47,7 +49,7 @@ from cellcoadd.pipelines.validation_settings import (
     stamp_cell,
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
-from cellcoadd.shear.response import PAPER_CUTS, multiplicative_bias, shear_response
+from cellcoadd.shear.response import cuts_for_shape, multiplicative_bias, shear_response
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
@@ -85,11 +87,20 @@ def run_pairs(
     scheduler: object | None = None,
     chunk_size: int | None = None,
     progress: bool = True,
+    checkpoint: str | os.PathLike[str] | None = None,
+    checkpoint_every: int = 1000,
 ) -> PairCatalogue:
     """Measure objects ``first_index`` to ``first_index + n_objects - 1``.
 
     Arguments are those of :func:`validate_shear`; ``first_index`` lets a long run be
     split into index ranges whose catalogues :meth:`PairCatalogue.concatenate` joins.
+
+    With ``checkpoint`` (a file path), the pairs measured so far are written there
+    (:meth:`PairCatalogue.save`) each time ``checkpoint_every`` more have finished, and at
+    the end; a run started with an existing checkpoint of the same settings measures only
+    the objects of its range the file lacks, so a killed run resumes without losing or
+    measuring twice any pair, and gives the catalogue an uninterrupted run gives. Pairs
+    of the file outside the range are kept in it but not returned.
 
     Returns
     -------
@@ -103,32 +114,57 @@ def run_pairs(
         )
     if workers < 1:
         raise CellCoaddRangeError(f"workers must be >= 1, got {workers}", value=workers, low=1)
-    pool, release = resolve_executor(executor, workers, scheduler)
+    if checkpoint_every < 1:
+        raise ConfigError(
+            f"checkpoint_every must be >= 1, got {checkpoint_every}", value=checkpoint_every
+        )
+    stop = first_index + n_objects
+    done: list[PairCatalogue] = []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        done.append(PairCatalogue.load(checkpoint, settings))
+    have = set(done[0].index.tolist()) if done else set()
+    todo = [i for i in range(first_index, stop) if i not in have]
+    pool, release = resolve_executor(executor, workers, scheduler) if todo else (None, None)
     if chunk_size is None:
         # several chunks per worker keep the pool busy and the progress bar moving
         slots = 1 if pool is None else 4 * max(workers, 2)
-        chunk_size = int(np.clip(np.ceil(n_objects / slots), 1, 25))
-    stop = first_index + n_objects
-    chunks = [range(a, min(a + chunk_size, stop)) for a in range(first_index, stop, chunk_size)]
-    done: list[PairCatalogue] = []
+        chunk_size = int(np.clip(np.ceil(max(len(todo), 1) / slots), 1, 25))
+    chunks = [todo[a : a + chunk_size] for a in range(0, len(todo), chunk_size)]
     bar = tqdm(
-        total=n_objects, desc=f"shear bias ({settings.mode})", unit="pair", disable=not progress
+        total=n_objects,
+        initial=n_objects - len(todo),
+        desc=f"shear bias ({settings.mode})",
+        unit="pair",
+        disable=not progress,
     )
+    since_saved = 0
+
+    def finished(catalogue: PairCatalogue) -> None:
+        nonlocal since_saved
+        done.append(catalogue)
+        bar.update(len(catalogue))
+        since_saved += len(catalogue)
+        if checkpoint is not None and since_saved >= checkpoint_every:
+            done[:] = [PairCatalogue.concatenate(done)]
+            done[0].save(checkpoint, settings)
+            since_saved = 0
+
     try:
         if pool is None:
             for chunk in chunks:
-                done.append(measure_pairs(settings, chunk))
-                bar.update(len(chunk))
+                finished(measure_pairs(settings, chunk))
         else:
-            futures = {pool.submit(measure_pairs, settings, chunk): chunk for chunk in chunks}
+            futures = [pool.submit(measure_pairs, settings, chunk) for chunk in chunks]
             for future in as_completed(futures):
-                done.append(future.result())
-                bar.update(len(futures[future]))
+                finished(future.result())
     finally:
         bar.close()
         if release is not None:
             release()
-    return PairCatalogue.concatenate(done)
+    result = PairCatalogue.concatenate(done)
+    if checkpoint is not None and since_saved:
+        result.save(checkpoint, settings)
+    return result.select(first_index, stop)
 
 
 def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[str, Any]:
@@ -142,17 +178,18 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
     if settings.method == "anacal":
         return summarize_anacal(settings, catalogue, _group(settings, catalogue))
     plus, minus = catalogue.plus, catalogue.minus
+    cuts = cuts_for_shape(settings.shape)
     bias = multiplicative_bias(
         plus,
         minus,
         true_g=settings.sim.shear[0],
         step=settings.step,
-        selection=PAPER_CUTS,
+        selection=cuts,
         group=_group(settings, catalogue),
     )
-    kept_plus = PAPER_CUTS(plus["noshear"])
-    kept_minus = PAPER_CUTS(minus["noshear"])
-    response = shear_response(plus, step=settings.step, selection=PAPER_CUTS)
+    kept_plus = cuts(plus["noshear"])
+    kept_minus = cuts(minus["noshear"])
+    response = shear_response(plus, step=settings.step, selection=cuts)
     s2n = plus["noshear"]["s2n"][np.isfinite(plus["noshear"]["s2n"])]
     cpu = float(catalogue.cpu_seconds.sum())
     return {
@@ -202,6 +239,8 @@ def validate_shear(
     bfd_templates: int = 100,
     bfd_template_sample: Literal["independent", "targets"] = "independent",
     bfd_oversample: int = BFD_OVERSAMPLE,
+    checkpoint: str | os.PathLike[str] | None = None,
+    checkpoint_every: int = 1000,
 ) -> dict[str, Any]:
     """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
@@ -268,6 +307,11 @@ def validate_shear(
         :data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`, 4: accurate
         shear derivatives for small galaxies; 1, the stamp's own FFT grid, biases m1 by
         a few per cent; see ``docs/validation.md``).
+    checkpoint : path-like, optional
+        File the measured pairs are saved to every ``checkpoint_every`` pairs; an
+        existing one of the same settings is resumed (see :func:`run_pairs`).
+    checkpoint_every : int
+        Pairs between checkpoints.
 
     Returns
     -------
@@ -319,6 +363,8 @@ def validate_shear(
         scheduler=scheduler,
         chunk_size=chunk_size,
         progress=progress,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
     )
     result = summarize(settings, measured)
     result["wall_seconds"] = time.perf_counter() - start

@@ -44,8 +44,10 @@ from cellcoadd.shear.observation import (
 )
 from cellcoadd.shear.response import (
     PAPER_CUTS,
+    WMOM_CUTS,
     SelectionCuts,
     ShearResponse,
+    cuts_for_shape,
     mean_shear,
     multiplicative_bias,
     shear_response,
@@ -57,6 +59,7 @@ __all__ = [
     "INTERPOLANT",
     "METACAL_TYPES",
     "PAPER_CUTS",
+    "WMOM_CUTS",
     "RECONVOLUTION_KINDS",
     "SHAPE_DTYPE",
     "SHAPE_KINDS",
@@ -67,6 +70,7 @@ __all__ = [
     "MetacalEpoch",
     "MetacalImage",
     "SelectionCuts",
+    "cuts_for_shape",
     "ShearResponse",
     "common_reconvolution_psf",
     "gaussian_weight",

@@ -49,11 +49,13 @@ import numpy as np
 
 from cellcoadd.errors import ShearError
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
+from cellcoadd.shear.noise_correlation import covariance_flux_variance
 from cellcoadd.shear.shapes import (
     SHAPE_DTYPE,
     MetacalFlags,
     empty_record,
     gaussian_moment_sums,
+    gaussian_weight_image,
     round_inverse_cov,
     sky_offsets,
     wmom_record,
@@ -84,6 +86,11 @@ class EpochPixels:
         Pixel noise variance (image units squared); 0 for a noise-free image.
     u, v : ndarray, shape (ny, nx)
         Sky offsets (arcsec) of the pixel centres from the reference position.
+    noise_covariance : ndarray or None
+        Autocovariance of the epoch's noise (as
+        :func:`~cellcoadd.shear.noise_correlation.noise_covariance` lays it out), for the
+        S/N; None: white noise of ``variance``. The epochs' relative weights use
+        ``variance`` either way.
     """
 
     image: np.ndarray
@@ -92,6 +99,7 @@ class EpochPixels:
     variance: float
     u: np.ndarray
     v: np.ndarray
+    noise_covariance: np.ndarray | None = None
 
     @classmethod
     def from_image(
@@ -100,13 +108,14 @@ class EpochPixels:
         jacobian: np.ndarray,
         centre: tuple[float, float],
         variance: float,
+        noise_covariance: np.ndarray | None = None,
     ) -> EpochPixels:
         """Make the epoch's sky offsets from its jacobian and reference pixel."""
         array = np.ascontiguousarray(image, dtype=np.float64)
         jac = np.asarray(jacobian, dtype=np.float64)
         centre = (float(centre[0]), float(centre[1]))
         u, v = sky_offsets(array.shape, jacobian_wcs(jac), centre)
-        return cls(array, jac, centre, float(variance), u, v)
+        return cls(array, jac, centre, float(variance), u, v, noise_covariance)
 
     @property
     def pixel_area(self) -> float:
@@ -144,7 +153,8 @@ def joint_sums(
         The joint :func:`~cellcoadd.shear.shapes.gaussian_moment_sums` (moments about the
         weight's centre); entry 6 is the weighted mean of ``sum W^2``.
     flux_variance : float
-        Noise variance of ``sums[0]`` (image units squared).
+        Noise variance of ``sums[0]`` (image units squared): from each epoch's
+        ``noise_covariance`` where it is given, else white noise of its ``variance``.
     """
     if not epochs:
         raise ShearError("a joint measurement needs at least one epoch")
@@ -155,7 +165,13 @@ def joint_sums(
     for weight, epoch in zip(weights, epochs, strict=True):
         sums = gaussian_moment_sums(epoch.image, epoch.u - du, epoch.v - dv, inverse_cov)
         total += weight * sums
-        flux_variance += weight * weight * epoch.variance * sums[6]
+        if epoch.noise_covariance is None:
+            flux_variance += weight * weight * epoch.variance * sums[6]
+        else:
+            window = gaussian_weight_image(epoch.u - du, epoch.v - dv, inverse_cov)
+            flux_variance += (
+                weight * weight * covariance_flux_variance(epoch.noise_covariance, window)
+            )
     norm = float(np.sum(weights))
     return total / norm, flux_variance / norm**2
 

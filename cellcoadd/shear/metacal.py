@@ -49,6 +49,7 @@ import numpy as np
 
 from cellcoadd.errors import MetacalError
 from cellcoadd.geometry.wcs_utils import jacobian_wcs
+from cellcoadd.shear.noise_correlation import metacal_noise_covariance
 from cellcoadd.shear.shapes import (
     SHAPE_KINDS,
     WMOM_FWHM,
@@ -357,8 +358,12 @@ def measure_shapes(
     metacal : mapping of str to MetacalImage
         Output of :func:`metacal_images`.
     noise_sigma : float
-        Per-pixel noise standard deviation of the *input* image (image units); the S/N
-        uses ``variance_factor * noise_sigma**2``. Zero gives an infinite S/N.
+        Per-pixel noise standard deviation of the *input* image (image units). The S/N
+        uses the covariance of each metacal image's noise, measured from its correction
+        (:func:`~cellcoadd.shear.noise_correlation.metacal_noise_covariance`: correlated
+        by the coadd's resampling and by the reconvolution), or, without a correction,
+        white noise of variance ``variance_factor * noise_sigma**2``; zero then gives an
+        infinite S/N.
     guess_centroid : (x, y), optional
         0-based pixel position to start from (default: the image centre).
     guess_sigma : float, optional
@@ -381,9 +386,13 @@ def measure_shapes(
     results: dict[str, np.ndarray] = {}
     for name, mc in metacal.items():
         wcs = _galsim_wcs(mc.jacobian)
+        # the S/N from the covariance of the image's noise when its correction shows it
+        covariance = None if mc.noise is None else metacal_noise_covariance(mc.noise)
         if shape == "wmom":
             variance = mc.variance_factor * noise_sigma**2
-            record = measure_wmom(mc.image, wcs, variance, guess_centroid, weight_fwhm)
+            record = measure_wmom(
+                mc.image, wcs, variance, guess_centroid, weight_fwhm, noise_covariance=covariance
+            )
             record["T_psf"] = psf_T(mc.psf_image, wcs, weight_fwhm)
             results[name] = record
             continue
@@ -394,8 +403,9 @@ def measure_shapes(
         else:
             sigma = guess_sigma
         record = measure_shape(
-            mc.image, wcs, mc.variance_factor * noise_sigma**2, guess_centroid, sigma
-        )
+            mc.image, wcs, mc.variance_factor * noise_sigma**2, guess_centroid, sigma,
+            noise_covariance=covariance,
+        )  # fmt: skip
         record["T_psf"] = T_psf
         if not np.isfinite(T_psf):
             record["flags"] |= MetacalFlags.PSF_FAILED

@@ -47,6 +47,7 @@ from cellcoadd.shear.metacal import (
     metacal_images,
     reconvolution_psf,
 )
+from cellcoadd.shear.noise_correlation import metacal_noise_covariance
 from cellcoadd.shear.shapes import (
     SHAPE_KINDS,
     WMOM_FWHM,
@@ -182,6 +183,11 @@ def multi_epoch_images(
     ]
 
 
+def _noise_covariance(image: MetacalImage) -> np.ndarray | None:
+    # the S/N from the noise's covariance, as single-image metacal's
+    return None if image.noise is None else metacal_noise_covariance(image.noise)
+
+
 def measure_joint_shapes(
     images: Sequence[Mapping[str, MetacalImage]],
     epochs: Sequence[MetacalEpoch],
@@ -210,7 +216,9 @@ def measure_joint_shapes(
     -------
     dict of str to ndarray
         For each type, a length-1 :data:`~cellcoadd.shear.shapes.SHAPE_DTYPE` array.
-        Each epoch's pixel variance is ``variance_factor * noise_sigma**2``.
+        Each epoch's pixel variance is ``variance_factor * noise_sigma**2`` (its
+        weight); the S/N uses the covariance of each epoch's noise, measured from its
+        correction as in :func:`cellcoadd.shear.metacal.measure_shapes`.
     """
     if shape not in SHAPE_KINDS:
         raise MetacalError(f"unknown shape {shape!r}; known: {SHAPE_KINDS}")
@@ -226,6 +234,7 @@ def measure_joint_shapes(
                 epoch.jacobian,
                 epoch.centre,
                 per_epoch[name].variance_factor * epoch.noise_sigma**2,
+                _noise_covariance(per_epoch[name]),
             )
             for per_epoch, epoch in zip(images, epochs, strict=True)
         ]

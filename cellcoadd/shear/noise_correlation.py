@@ -21,6 +21,9 @@ subtracted. Arrays are indexed ``[y, x]`` and lags ``(dy, dx)`` are in pixels.
   frequencies is the pixel variance).
 * :func:`weighted_flux_variance` -- the variance of ``sum(w * image)`` for a weight stamp
   ``w``: ``sum_lag C(lag) R_w(lag)`` with ``R_w`` the autocorrelation of ``w``.
+* :func:`covariance_flux_variance` -- the same from a covariance already measured;
+  :func:`metacal_noise_covariance` -- the covariance of a metacalibration image's noise
+  (the image's own and its correction's), from the correction: what metacal's S/N uses.
 * :func:`variance_factor` -- that variance divided by what uncorrelated noise of the same
   pixel variance would give (``C(0) sum(w^2)``); :func:`snr_correction` is its square
   root for a Gaussian weight: divide a weight-map S/N by it to get the true S/N.
@@ -39,6 +42,9 @@ from cellcoadd.model.cell_coadd import CellCoadd
 #: +-3 input pixels (+-3.9 coadd pixels for 0.26 arcsec inputs on 0.2 arcsec cells), so the
 #: resampled noise is correlated over at most about twice that.
 DEFAULT_MAX_LAG = 8
+#: Largest lag of the covariance of a metacalibration image's noise: reconvolution by a
+#: PSF wider than the input's correlates it over a few PSF sigmas (~10 coadd pixels).
+METACAL_MAX_LAG = 12
 
 
 def _realizations(noise: CellCoadd | Any) -> np.ndarray:
@@ -173,6 +179,36 @@ def weighted_flux_variance(
     return float(np.sum(cov * window))
 
 
+def covariance_flux_variance(covariance: np.ndarray, weight_image: Any) -> float:
+    """Variance of ``sum(weight_image * image)`` for noise of autocovariance ``covariance``.
+
+    ``covariance`` is laid out as :func:`noise_covariance` gives it (``(2L + 1)`` square,
+    lag ``(dy, dx)`` at ``[L + dy, L + dx]``); the noise is taken as stationary and
+    uncorrelated beyond ``L``. ``sum_lag C(lag) R_w(lag)``, ``R_w`` the autocorrelation of
+    the weight (lags beyond the weight's size contribute nothing).
+    """
+    weight = _weight_stamp(weight_image)
+    cov = np.asarray(covariance, dtype=np.float64)
+    max_lag = cov.shape[0] // 2
+    autocorrelation = _lag_sums(weight, weight, max_lag)
+    return float(np.sum(cov * autocorrelation))
+
+
+def metacal_noise_covariance(correction: np.ndarray, max_lag: int = METACAL_MAX_LAG) -> np.ndarray:
+    """Autocovariance of the whole noise of a metacalibration image, from its correction.
+
+    A metacal image is ``M(image) + R^-1 M(R n)`` (:func:`cellcoadd.shear.metacal_images`:
+    ``M`` the deconvolve-shear-reconvolve operation, ``R`` a 90-degree rotation, ``n`` a
+    noise realization); ``correction`` is the second term. Its noise has the covariance of
+    ``M(noise)`` turned by 90 degrees, and the first term's noise that of ``M(noise)``, so
+    the sum's is ``C + rot90(C)`` with ``C`` the correction's (for input noise whose
+    statistics a 90-degree turn leaves unchanged: white noise, and coadd noise to the
+    extent the inputs' orientations average out). ``(2 max_lag + 1)`` square.
+    """
+    covariance = noise_covariance(np.asarray(correction, dtype=np.float64), max_lag)
+    return np.asarray(covariance + np.rot90(covariance))
+
+
 def variance_factor(
     noise: CellCoadd | Any,
     weight_image: Any,
@@ -224,7 +260,10 @@ def snr_correction(
 
 __all__ = [
     "DEFAULT_MAX_LAG",
+    "METACAL_MAX_LAG",
+    "covariance_flux_variance",
     "gaussian_weight",
+    "metacal_noise_covariance",
     "noise_correlation",
     "noise_covariance",
     "noise_power_spectrum",

@@ -3,8 +3,7 @@
 ``"admom"`` (:func:`measure_shape`): GalSim HSM adaptive moments converted to sky
 coordinates by the image's WCS (``u`` West, ``v`` North): the reduced shear ``g = (a - b) /
 (a + b) * (cos 2 phi, sin 2 phi)`` (GalSim ``observed_shape``) and ``T = Ixx + Iyy`` in
-arcsec^2. The S/N is that of the flux in the matched (adaptive) Gaussian weight, for white
-noise.
+arcsec^2. The S/N is that of the flux in the matched (adaptive) Gaussian weight.
 
 ``"wmom"`` (:func:`measure_wmom`): moments in a *fixed* round Gaussian weight of FWHM
 ``weight_fwhm`` arcsec centred on a fixed position (the ``wmom`` estimator of ngmix /
@@ -13,7 +12,14 @@ metadetect): with ``W`` the weight and ``(u, v)`` sky offsets from the centre,
 ``e = (M_uu - M_vv, 2 M_uv) / T`` reported as ``g1, g2`` (metacalibration calibrates any
 estimator; for a round Gaussian of sigma ``s`` sheared by ``g``, weight sigma ``w``,
 ``e = 2 w^2 / (s^2 + w^2) g`` to first order). Nothing is iterated, so it cannot fail to
-converge at low S/N; the S/N is ``F / sqrt(var sum W^2)``.
+converge at low S/N; the S/N is ``F / sqrt(var F)``.
+
+**S/N and correlated noise.** ``var F`` is ``var sum W^2`` for white noise of pixel
+variance ``var``; given the noise's autocovariance ``C`` (``noise_covariance=``, as
+:func:`~cellcoadd.shear.noise_correlation.noise_covariance` lays it out) it is
+``sum_lag C(lag) R_W(lag)``, ``R_W`` the autocorrelation of the weight: the true variance
+whatever correlates the noise (a coadd's resampling, metacalibration's reconvolution), so
+the same S/N cut means the same thing on coadds, single epochs and joint epochs.
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ from typing import Literal
 
 import galsim
 import numpy as np
+
+from cellcoadd.shear.noise_correlation import covariance_flux_variance
 
 #: One measured shape per row; ``T`` and ``T_psf`` in arcsec^2, ``flux`` in image units
 #: (sum of pixel values), ``x, y`` the 0-based pixel centroid.
@@ -71,6 +79,7 @@ def measure_shape(
     noise_variance: float,
     guess_centroid: tuple[float, float] | None,
     guess_sigma: float,
+    noise_covariance: np.ndarray | None = None,
 ) -> np.ndarray:
     """Adaptive-moments shape of ``array`` (indexed ``[y, x]``) as a length-1 record.
 
@@ -86,6 +95,9 @@ def measure_shape(
         0-based pixel position to start from (None: the image centre).
     guess_sigma : float
         Starting Gaussian sigma in pixels.
+    noise_covariance : ndarray, optional
+        Autocovariance of the noise (see the module docstring); given, the S/N uses it
+        and ``noise_variance`` is not used.
 
     Returns
     -------
@@ -103,8 +115,8 @@ def measure_shape(
     if moments.moments_status != 0:
         return empty_record(MetacalFlags.HSM_FAILED)
 
-    # S/N of the flux in the matched (adaptive) Gaussian weight W, for white noise:
-    # sum(W I) / sqrt(var * sum(W^2)).
+    # S/N of the flux in the matched (adaptive) Gaussian weight W: sum(W I) / sqrt(var F),
+    # var F = var * sum(W^2) for white noise
     ny, nx = array.shape
     moments_matrix = moments.moments_sigma**2 * _shape_matrix(moments.observed_shape)
     dx = np.arange(nx)[np.newaxis, :] - moments.moments_centroid.x
@@ -113,8 +125,13 @@ def measure_shape(
     rho2 = inverse[0, 0] * dx**2 + 2.0 * inverse[0, 1] * dx * dy + inverse[1, 1] * dy**2
     weight = np.exp(-0.5 * rho2)
     weighted_flux = float(np.sum(weight * array))
-    if noise_variance > 0.0:
-        s2n = weighted_flux / np.sqrt(noise_variance * np.sum(weight**2))
+    flux_variance = (
+        noise_variance * float(np.sum(weight**2))
+        if noise_covariance is None
+        else covariance_flux_variance(noise_covariance, weight)
+    )
+    if flux_variance > 0.0:
+        s2n = weighted_flux / np.sqrt(flux_variance)
     else:
         s2n = np.inf if weighted_flux > 0.0 else np.nan
 
@@ -172,6 +189,13 @@ def fwhm_to_sigma(fwhm: float) -> float:
     return float(fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0))))
 
 
+def gaussian_weight_image(u: np.ndarray, v: np.ndarray, inverse_cov: np.ndarray) -> np.ndarray:
+    """The Gaussian weight ``W = exp(-d^T inverse_cov d / 2)`` at sky offsets ``d = (u, v)``
+    (arcsec) of the pixel centres; ``inverse_cov`` in arcsec^-2."""
+    a, b, c = inverse_cov[0, 0], inverse_cov[0, 1], inverse_cov[1, 1]
+    return np.asarray(np.exp(-0.5 * (a * u * u + 2.0 * b * u * v + c * v * v)))
+
+
 def gaussian_moment_sums(
     array: np.ndarray, u: np.ndarray, v: np.ndarray, inverse_cov: np.ndarray
 ) -> np.ndarray:
@@ -194,8 +218,7 @@ def gaussian_moment_sums(
         ``sum W I u v`` (image units times arcsec^0, ^1 or ^2) and ``sum W^2``: the pieces
         that single-image and joint multi-epoch moments are made of.
     """
-    a, b, c = inverse_cov[0, 0], inverse_cov[0, 1], inverse_cov[1, 1]
-    weight = np.exp(-0.5 * (a * u * u + 2.0 * b * u * v + c * v * v))
+    weight = gaussian_weight_image(u, v, inverse_cov)
     wi = weight * array
     wiu, wiv = wi * u, wi * v
     return np.array(
@@ -279,12 +302,14 @@ def measure_wmom(
     noise_variance: float,
     centre: tuple[float, float] | None,
     weight_fwhm: float = WMOM_FWHM,
+    noise_covariance: np.ndarray | None = None,
 ) -> np.ndarray:
     """Fixed-weight Gaussian moments shape of ``array`` as a length-1 record.
 
     See the module docstring; ``centre`` is the fixed 0-based pixel position of the
     weight (None: the image centre), reported as ``x, y``; ``flux`` is the weighted flux
     ``sum W I``. ``T_psf`` is left 0 for the caller (:func:`psf_T` with ``weight_fwhm``).
+    The S/N uses ``noise_covariance`` when given, else white noise of ``noise_variance``.
     """
     if not np.all(np.isfinite(array)):
         return empty_record(MetacalFlags.NONFINITE)
@@ -292,5 +317,9 @@ def measure_wmom(
     if centre is None:
         centre = ((nx - 1) / 2.0, (ny - 1) / 2.0)
     u, v = sky_offsets(array.shape, wcs, centre)
-    sums = gaussian_moment_sums(array, u, v, round_inverse_cov(weight_fwhm))
-    return wmom_record(sums, noise_variance * float(sums[6]), centre)
+    inverse_cov = round_inverse_cov(weight_fwhm)
+    sums = gaussian_moment_sums(array, u, v, inverse_cov)
+    if noise_covariance is None:
+        return wmom_record(sums, noise_variance * float(sums[6]), centre)
+    weight = gaussian_weight_image(u, v, inverse_cov)
+    return wmom_record(sums, covariance_flux_variance(noise_covariance, weight), centre)

@@ -20,6 +20,7 @@ writes the objects to files.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import galsim
@@ -27,7 +28,7 @@ import numpy as np
 from astropy.table import Table
 
 from cellcoadd.errors import CellCoaddValueError
-from cellcoadd.geometry.wcs_utils import local_jacobian, tan_wcs
+from cellcoadd.geometry.wcs_utils import canonical_wcs, local_jacobian, tan_wcs
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.sim.config import SimConfig, WcsVariationConfig
 from cellcoadd.sim.galaxies import (
@@ -170,7 +171,31 @@ def simulate_object(
     changes nothing else (same random numbers: flux, size, PSFs, shifts, WCSs, noise): the
     ring partner that cancels the object's intrinsic shape in a mean.
     """
-    g1, g2 = config.shear if shear is None else (float(shear[0]), float(shear[1]))
+    shears = [config.shear if shear is None else (float(shear[0]), float(shear[1]))]
+    (obj,) = simulate_sheared(
+        config, seed, index, shears, add_noise=add_noise, sampler=sampler,
+        rotate_shape=rotate_shape,
+    )  # fmt: skip
+    return obj
+
+
+def simulate_sheared(
+    config: SimConfig,
+    seed: int,
+    index: int,
+    shears: Sequence[tuple[float, float]],
+    *,
+    add_noise: bool = True,
+    sampler: GalaxySampler | None = None,
+    rotate_shape: bool = False,
+) -> list[StampObject]:
+    """Object ``index`` of the run with ``seed`` under each of ``shears``: the same as
+    :func:`simulate_object` for each shear, made once for all of them.
+
+    The random draws, PSFs and WCSs are made once; each epoch's WCS object (in canonical
+    form, :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`) is shared by the members'
+    exposures, so a ``+g``/``-g`` pair converts each WCS once instead of twice.
+    """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
     n_epochs, size = config.n_epochs, config.stamp_size
 
@@ -182,40 +207,48 @@ def simulate_object(
 
     flux = float(mag_to_flux(props.mag[0], config.zero_point))
     turn = -1.0 if rotate_shape else 1.0
-    truth = StampTruth(
-        mag=float(props.mag[0]),
-        flux=flux,
-        hlr=float(props.hlr[0]),
-        e1=turn * float(props.e1[0]),
-        e2=turn * float(props.e2[0]),
-        g1=g1,
-        g2=g2,
-    )
-    galaxy = exponential_galaxy(flux, truth.hlr, truth.e1, truth.e2, g1, g2)
+    truths = [
+        StampTruth(
+            mag=float(props.mag[0]),
+            flux=flux,
+            hlr=float(props.hlr[0]),
+            e1=turn * float(props.e1[0]),
+            e2=turn * float(props.e2[0]),
+            g1=float(g1),
+            g2=float(g2),
+        )
+        for g1, g2 in shears
+    ]
+    galaxies = [exponential_galaxy(flux, t.hlr, t.e1, t.e2, t.g1, t.g2) for t in truths]
     centre = (size - 1) / 2.0
-    exposures, epochs = [], []
+    exposures: list[list[Exposure]] = [[] for _ in shears]
+    epochs = []
     for epoch, psf in enumerate(psf_profiles(config.psf, psf_params)):
         x, y = centre + shifts[epoch, 0], centre + shifts[epoch, 1]
         wcs = tan_wcs(config.ra, config.dec, x, y, jacobians[epoch])
-        image = galsim.Image(np.zeros((size, size)), xmin=0, ymin=0)
-        draw_source(
-            galsim.Convolve(galaxy, psf), image, x, y, local_jacobian(wcs, x, y), half_size=size
-        )
-        pixels = image.array
-        if add_noise:
-            pixels = pixels + config.noise_sigma * noise[epoch]
-        exposures.append(
-            Exposure(
-                image=pixels,
-                wcs=wcs,
-                variance=config.noise_sigma**2,
-                psf=psf,
-                visit=epoch,
-                detector=int(index),
-                band=config.band,
-                zero_point=config.zero_point,
+        # GalSim draws through the Jacobian of the WCS as made (as the module says); the
+        # exposures hold its canonical form, made once for all members
+        jacobian = local_jacobian(wcs, x, y)
+        shared_wcs = canonical_wcs(wcs)
+        for member, galaxy in zip(exposures, galaxies, strict=True):
+            image = galsim.Image(np.zeros((size, size)), xmin=0, ymin=0)
+            draw_source(galsim.Convolve(galaxy, psf), image, x, y, jacobian, half_size=size)
+            pixels = image.array
+            if add_noise:
+                pixels = pixels + config.noise_sigma * noise[epoch]
+            member.append(
+                Exposure(
+                    image=pixels,
+                    wcs=shared_wcs,
+                    variance=config.noise_sigma**2,
+                    psf=psf,
+                    visit=epoch,
+                    detector=int(index),
+                    band=config.band,
+                    zero_point=config.zero_point,
+                    wcs_is_canonical=True,
+                )
             )
-        )
         epochs.append(
             EpochTruth(
                 psf_fwhm=float(psf_params.fwhm[epoch]),
@@ -227,15 +260,18 @@ def simulate_object(
                 noise_sigma=config.noise_sigma,
             )
         )
-    return StampObject(
-        index=int(index),
-        ra=config.ra,
-        dec=config.dec,
-        exposures=exposures,
-        truth=truth,
-        epochs=epochs,
-        galaxy=galaxy,
-    )
+    return [
+        StampObject(
+            index=int(index),
+            ra=config.ra,
+            dec=config.dec,
+            exposures=member,
+            truth=truth,
+            epochs=list(epochs),
+            galaxy=galaxy,
+        )
+        for member, truth, galaxy in zip(exposures, truths, galaxies, strict=True)
+    ]
 
 
 def simulate_stamps(

@@ -50,7 +50,11 @@ def inputs_to_array(records: list[InputRecord], *, ascii_only: bool) -> np.ndarr
 
 
 def inputs_from_array(table: np.ndarray, *, ascii_only: bool) -> list[InputRecord]:
-    """Validated records from a table written by :func:`inputs_to_array`."""
+    """Validated records from a table written by :func:`inputs_to_array`.
+
+    A float column the table lacks (``psf_flux_outside`` before format 1.3) is NaN.
+    """
+    names = set(table.dtype.names or ())
     records = []
     for row in table:
         band = _text(row["band"])
@@ -60,7 +64,7 @@ def inputs_from_array(table: np.ndarray, *, ascii_only: bool) -> list[InputRecor
                 detector=int(row["detector"]),
                 band=_unescape_ascii(band) if ascii_only else band,
                 status=_text(row["status"]),
-                **{name: float(row[name]) for name in FLOAT_FIELDS},
+                **{name: float(row[name]) for name in FLOAT_FIELDS if name in names},
             )
         )
     return records

@@ -196,6 +196,9 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
         value = getattr(config, name)
         if field.description and not (name == "zero_point" and config.units == "nJy"):
             lines.append(f"# {name}: {field.description}")
+        if value is None:  # TOML has no null: a field left out keeps its default
+            lines.append(f"# {name} = (left out: the default)")
+            continue
         if name == "bad_mask_bits" and preset is not None:
             if MASK_PRESETS[preset] != value:
                 raise ConfigError(f"bad_mask_bits {list(value)} are not the {preset!r} preset")

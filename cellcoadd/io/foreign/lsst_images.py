@@ -180,7 +180,8 @@ def records_from_json(items: list[dict[str, Any]]) -> list[InputRecord]:
     for item in items:
         fields = dict(item)
         for name in FLOAT_FIELDS:
-            fields[name] = _bits_float(fields[name])
+            if name in fields:  # psf_flux_outside is absent from exports before format 1.3
+                fields[name] = _bits_float(fields[name])
         records.append(InputRecord.model_validate(fields))
     return records
 
