@@ -28,6 +28,7 @@ _EXPORTS: dict[str, str] = {
     "BuildError": "cellcoadd.errors",
     "CellBuildError": "cellcoadd.errors",
     "CellCoaddError": "cellcoadd.errors",
+    "PsfStampWarning": "cellcoadd.errors",
     "CellCoaddFileExistsError": "cellcoadd.errors",
     "CellCoaddFileNotFoundError": "cellcoadd.errors",
     "CellCoaddFloatingPointError": "cellcoadd.errors",
@@ -102,6 +103,7 @@ _EXPORTS: dict[str, str] = {
 
 __all__ = [
     "BfdError",
+    "PsfStampWarning",
     "Box",
     "BuildConfig",
     "BuildError",
@@ -237,6 +239,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         MissingDependencyError,
         PsfCodecError,
         PsfError,
+        PsfStampWarning,
         RunLockedError,
         ShearError,
         TractRunError,

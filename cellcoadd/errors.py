@@ -106,6 +106,7 @@ from typing import Any
 
 __all__ = [
     "BfdError",
+    "PsfStampWarning",
     "BuildError",
     "CellBuildError",
     "CellCoaddError",

@@ -37,7 +37,15 @@ from cellcoadd.io._files.read_checks import is_file_failure
 ERROR_CLASSES = [
     obj
     for name, obj in vars(errors_module).items()
-    if inspect.isclass(obj) and issubclass(obj, BaseException) and not name.startswith("_")
+    if inspect.isclass(obj)
+    and issubclass(obj, BaseException)
+    and not issubclass(obj, Warning)
+    and not name.startswith("_")
+]
+WARNING_CLASSES = [
+    obj
+    for name, obj in vars(errors_module).items()
+    if inspect.isclass(obj) and issubclass(obj, Warning) and not name.startswith("_")
 ]
 
 FACTS = {"path": "/data/visit_123.fits", "hdu": "SCI", "visit": 123, "detector": 45, "cell": (3, 7)}
@@ -59,7 +67,16 @@ def test_every_error_class_is_exported_and_under_the_root() -> None:
         assert cls.__name__ in errors_module.__all__, cls
         assert cls.__name__ in cellcoadd.__all__, cls
         assert getattr(cellcoadd, cls.__name__) is cls
-    assert sorted(errors_module.__all__) == sorted(cls.__name__ for cls in ERROR_CLASSES)
+    assert sorted(errors_module.__all__) == sorted(
+        cls.__name__ for cls in ERROR_CLASSES + WARNING_CLASSES
+    )
+
+
+def test_every_warning_class_is_exported() -> None:
+    assert WARNING_CLASSES, "the library's warnings live in errors.py"
+    for cls in WARNING_CLASSES:
+        assert cls.__name__ in cellcoadd.__all__, cls
+        assert getattr(cellcoadd, cls.__name__) is cls
 
 
 def test_moved_classes_have_one_home() -> None:

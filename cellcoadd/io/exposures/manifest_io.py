@@ -19,6 +19,7 @@ import io
 import json
 import os
 import sys
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -177,7 +178,9 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     # cellcoadd build configuration (BuildConfig); see docs/inputs.md
     <BLANKLINE>
     n_noise = 3
-    psf_size = 35
+    # psf_size: odd side of the coadd PSF stamp, px; left out: 75, or the largest odd size
+    #   the cells' outer box holds
+    # psf_size = (left out: the default)
     kernel = "lanczos3"
     max_mask_fraction = 0.1
     # the 'lsst' preset: ["BAD", "SAT", "CR", "EDGE", "NO_DATA"]
@@ -195,7 +198,9 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     for name, field in BuildConfig.model_fields.items():
         value = getattr(config, name)
         if field.description and not (name == "zero_point" and config.units == "nJy"):
-            lines.append(f"# {name}: {field.description}")
+            lines += textwrap.wrap(
+                f"{name}: {field.description}", 88, initial_indent="# ", subsequent_indent="#   "
+            )
         if value is None:  # TOML has no null: a field left out keeps its default
             lines.append(f"# {name} = (left out: the default)")
             continue
