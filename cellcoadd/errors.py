@@ -215,7 +215,18 @@ class CellCoaddError(Exception):
 # -- argument values -------------------------------------------------------------------
 
 
-class CellCoaddValueError(CellCoaddError, ValueError):
+class _ValueFacts(CellCoaddError):
+    """Base of the errors about one value: ``value`` is it, ``allowed`` what would do."""
+
+    def __init__(
+        self, message: str = "", *, value: Any = None, allowed: Any = None, **facts: Any
+    ) -> None:
+        super().__init__(message, **facts)
+        self.value = value
+        self.allowed = allowed
+
+
+class CellCoaddValueError(_ValueFacts, ValueError):
     """An argument has the right type but a value that cannot be used.
 
     Parameters
@@ -229,13 +240,6 @@ class CellCoaddValueError(CellCoaddError, ValueError):
     **facts
         ``path``, ``hdu``, ``visit``, ``detector``, ``cell`` as for :class:`CellCoaddError`.
     """
-
-    def __init__(
-        self, message: str = "", *, value: Any = None, allowed: Any = None, **facts: Any
-    ) -> None:
-        super().__init__(message, **facts)
-        self.value = value
-        self.allowed = allowed
 
 
 class CellCoaddRangeError(CellCoaddValueError):
@@ -319,43 +323,22 @@ class EmptyCellError(ShearError):
 # -- types, names, indices ---------------------------------------------------------------
 
 
-class CellCoaddTypeError(CellCoaddError, TypeError):
+class CellCoaddTypeError(_ValueFacts, TypeError):
     """An argument has the wrong type; ``value`` is it, ``allowed`` the accepted types."""
 
-    def __init__(
-        self, message: str = "", *, value: Any = None, allowed: Any = None, **facts: Any
-    ) -> None:
-        super().__init__(message, **facts)
-        self.value = value
-        self.allowed = allowed
 
-
-class CellCoaddKeyError(CellCoaddError, KeyError):
+class CellCoaddKeyError(_ValueFacts, KeyError):
     """A name is not known; ``value`` is the name, ``allowed`` the known names.
 
     Unlike a plain ``KeyError``, ``str(error)`` is the message without added quotes.
     """
 
-    def __init__(
-        self, message: str = "", *, value: Any = None, allowed: Any = None, **facts: Any
-    ) -> None:
-        super().__init__(message, **facts)
-        self.value = value
-        self.allowed = allowed
-
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""
 
 
-class CellCoaddIndexError(CellCoaddError, IndexError):
+class CellCoaddIndexError(_ValueFacts, IndexError):
     """An index lies outside a grid; ``value`` is the index, ``allowed`` the valid range."""
-
-    def __init__(
-        self, message: str = "", *, value: Any = None, allowed: Any = None, **facts: Any
-    ) -> None:
-        super().__init__(message, **facts)
-        self.value = value
-        self.allowed = allowed
 
 
 # -- files ---------------------------------------------------------------------------------
