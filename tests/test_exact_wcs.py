@@ -208,3 +208,27 @@ def test_pickling_is_faster_than_astropys():
         return (time.perf_counter() - start) / n
 
     assert per_call(exact, 50) < per_call(raw, 50)
+
+
+@pytest.mark.parametrize("name", ["patch.fits", "patch.h5"])
+def test_a_cell_wcs_read_back_from_a_coadd_file_is_the_written_one(tmp_path, monkeypatch, name):
+    """Cells on a tract with 17-digit parameters (not 14-digit ones): written to our
+    FITS and HDF5 formats and read back, each cell's WCS is an ExactWCS with the written
+    parameters, bit for bit, and a worker receives it unchanged."""
+    import coadd_factory
+
+    from cellcoadd.io import api
+
+    center = (150.12345678901234, -2.9876543210987654)
+    tract = SkyMap.from_centers([center], coadd_factory.SMALL)[0]
+    monkeypatch.setattr(coadd_factory, "tract_wcs", lambda config, center: tract.wcs)
+    original = coadd_factory.make_patch(seed=3)
+    api.write(original, tmp_path / name)
+    read = api.read(tmp_path / name)
+    for index, cell in original.cells.items():
+        back = read[index].wcs
+        assert back.wcs.crval[0] == center[0] != float(f"{center[0]:.14g}")
+        assert isinstance(back, ExactWCS) and _same_parameters(back, cell.wcs), index
+        received = pickle.loads(pickle.dumps(back))
+        assert received.__reduce__() == back.__reduce__(), index
+        assert np.array_equal(received.all_pix2world(PIXELS, 0), cell.wcs.all_pix2world(PIXELS, 0))
