@@ -88,7 +88,8 @@ class Cell:
         """WCS of the outer-box array: its pixel (0, 0) is tract pixel ``outer_bbox`` start.
 
         In canonical form (see :func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`) as the
-        tract's is: an integer shift of its (half-)integer reference pixel keeps it so."""
+        tract's is, without a conversion: a shift of an
+        :class:`~cellcoadd.geometry.exact_wcs.ExactWCS` is one."""
         box = self.outer_bbox
         return shifted_wcs(self.tract_wcs, box.x_start, box.y_start, canonical=False)
 

@@ -1,9 +1,11 @@
-"""The one exact codec of a celestial astropy WCS (JSON records and FITS keywords).
+"""The one exact codec of a celestial astropy WCS in files (JSON records and FITS keywords).
 
 FITS header cards print floating-point values with ~14 significant digits, so a WCS
 written only as a header does not come back bit for bit. :func:`wcs_to_record` stores the
 header cards *and* the numerical parameters at full double precision
-(:func:`wcs_exact_parameters`); :func:`wcs_from_record` rebuilds the WCS exactly.
+(:func:`~cellcoadd.geometry.exact_wcs.wcs_exact_parameters`, whose home is the geometry
+layer, beside the WCS that pickles with them); :func:`wcs_from_record` rebuilds the WCS
+exactly, as an :class:`~cellcoadd.geometry.exact_wcs.ExactWCS`.
 :func:`wcs_exact_keywords` / :func:`apply_wcs_exact_keywords` carry the same exact values
 keyed by FITS keyword, for files whose WCS lives in a header
 (:mod:`cellcoadd.io._fits.wcs_header`). Lookup-table distortions (CPDIS/DET2IM) are refused.
@@ -17,9 +19,15 @@ from typing import Any
 
 import numpy as np
 from astropy.io import fits
-from astropy.wcs import WCS, FITSFixedWarning, Sip
+from astropy.wcs import WCS, FITSFixedWarning
 
 from cellcoadd.errors import CellCoaddValueError
+from cellcoadd.geometry.exact_wcs import (
+    SIP_NAMES,
+    ExactWCS,
+    apply_wcs_exact_parameters,
+    wcs_exact_parameters,
+)
 
 
 def wcs_header(wcs: WCS) -> fits.Header:
@@ -31,61 +39,6 @@ def wcs_header(wcs: WCS) -> fits.Header:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FITSFixedWarning)
         return wcs.to_header(relax=True)
-
-
-def wcs_exact_parameters(wcs: WCS) -> dict[str, Any]:
-    """The numerical parameters of a celestial WCS at full double precision (JSON-able).
-
-    Keys: ``crpix``, ``crval``, ``cdelt`` (lists of 2 floats), ``pc`` (2 x 2), ``lonpole``,
-    ``latpole``, ``pv`` (``[i, m, value]`` triples) and ``sip`` (None, or the ``a``, ``b``,
-    ``ap``, ``bp`` coefficient matrices as nested lists, each possibly None).
-    :func:`apply_wcs_exact_parameters` sets them back.
-    """
-    params = wcs.wcs
-    exact: dict[str, Any] = {
-        "crpix": [float(v) for v in params.crpix],
-        "crval": [float(v) for v in params.crval],
-        "cdelt": [float(v) for v in params.get_cdelt()],
-        "pc": [[float(v) for v in row] for row in params.get_pc()],
-        "lonpole": float(params.lonpole),
-        "latpole": float(params.latpole),
-        "pv": [[int(i), int(m), float(v)] for i, m, v in params.get_pv()],
-        "sip": None,
-    }
-    if wcs.sip is not None:
-        exact["sip"] = {
-            name: None if coeffs is None else np.asarray(coeffs, dtype=float).tolist()
-            for name, coeffs in zip(
-                _SIP_NAMES, (wcs.sip.a, wcs.sip.b, wcs.sip.ap, wcs.sip.bp), strict=True
-            )
-        }
-    return exact
-
-
-def apply_wcs_exact_parameters(wcs: WCS, exact: dict[str, Any]) -> None:
-    """Set the parameters of :func:`wcs_exact_parameters` on ``wcs`` (in place), bit-exact.
-
-    An empty ``pv`` list leaves the PV values of ``wcs`` as they are.
-    """
-    params = wcs.wcs
-    params.crpix = exact["crpix"]
-    params.crval = exact["crval"]
-    params.cdelt = exact["cdelt"]
-    params.pc = exact["pc"]
-    params.lonpole = exact["lonpole"]
-    params.latpole = exact["latpole"]
-    if exact["pv"]:
-        params.set_pv([(int(i), int(m), float(v)) for i, m, v in exact["pv"]])
-    sip = exact.get("sip")
-    if sip is not None:
-        wcs.sip = Sip(
-            *(
-                None if sip[name] is None else np.asarray(sip[name], dtype=float)
-                for name in _SIP_NAMES
-            ),
-            np.asarray(exact["crpix"], dtype=float),
-        )
-    params.set()
 
 
 def wcs_exact_keywords(wcs: WCS) -> dict[str, float]:
@@ -208,18 +161,16 @@ def _wcslib_cards(wcs: WCS, card_values: dict[str, tuple[str, Any]]) -> list[lis
     return cards
 
 
-def wcs_from_record(record: dict[str, Any]) -> WCS:
-    """Rebuild the WCS described by :func:`wcs_to_record` (bit-exact parameters)."""
+def wcs_from_record(record: dict[str, Any]) -> ExactWCS:
+    """Rebuild the WCS described by :func:`wcs_to_record` (bit-exact parameters), in
+    canonical form (:func:`~cellcoadd.geometry.wcs_utils.canonical_wcs`): it pickles
+    exactly."""
     header = fits.Header([(str(key), value) for key, value in record["header"]])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FITSFixedWarning)
-        wcs = WCS(header, relax=True)
+        wcs = ExactWCS(header, relax=True)
     apply_wcs_exact_parameters(wcs, record["exact"])
     return wcs
-
-
-#: Names of the SIP coefficient matrices in :func:`wcs_exact_parameters`.
-_SIP_NAMES = ("a", "b", "ap", "bp")
 
 
 def _sip_items(exact: dict[str, Any]) -> Iterator[tuple[str, str, np.ndarray]]:
@@ -227,6 +178,6 @@ def _sip_items(exact: dict[str, Any]) -> Iterator[tuple[str, str, np.ndarray]]:
     sip = exact["sip"]
     if sip is None:
         return
-    for name in _SIP_NAMES:
+    for name in SIP_NAMES:
         if sip[name] is not None:
             yield name, name.upper(), np.array(sip[name], dtype=float)

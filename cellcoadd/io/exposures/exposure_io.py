@@ -356,8 +356,8 @@ def _read(
     ox, oy = _meta_origin(meta)
     return Exposure(
         image=image,
-        # the canonical WCS shifted, re-rounded as a round trip would (tested)
-        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start, from_canonical=True),
+        # the canonical WCS shifted: canonical too (it pickles exactly; tested)
+        wcs=wcs if cut == full else shifted_wcs(wcs, cut.x_start, cut.y_start),
         wcs_is_canonical=True,
         variance=variance,
         psf=read_psf(meta["psf"], psf_array, trusted=trust_psf),
@@ -379,7 +379,7 @@ _MAX_COMPRESSION = 1100
 
 def _check_same_wcs(wcs: WCS, exact: dict[str, Any]) -> None:
     """Refuse a WCS given for this file whose CRPIX or CRVAL are not the file's (to the
-    ~14 digits a WCS keeps in canonical form)."""
+    ~14 digits of a header, as a WCS given by the caller may have been read from one)."""
     for key in ("CRPIX1", "CRPIX2", "CRVAL1", "CRVAL2"):
         axis = int(key[-1]) - 1
         given = float((wcs.wcs.crpix if key.startswith("CRPIX") else wcs.wcs.crval)[axis])

@@ -220,8 +220,8 @@ class MefExposureFile(ExposureSource):
         try:
             return Exposure(
                 image=image,
-                # the canonical WCS shifted, re-rounded as a round trip would (tested)
-                wcs=shifted_wcs(meta.header.wcs, cut.x_start, cut.y_start, from_canonical=True),
+                # the canonical WCS shifted: canonical too (it pickles exactly; tested)
+                wcs=shifted_wcs(meta.header.wcs, cut.x_start, cut.y_start),
                 wcs_is_canonical=True,
                 variance=variance,
                 psf=self.psf,
