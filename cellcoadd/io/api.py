@@ -47,7 +47,6 @@ from cellcoadd.io.foreign.cell_coadds_layout import (
 )
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
 from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
-from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 
