@@ -37,7 +37,7 @@ from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
 from cellcoadd.builder.cell_sums import cell_jacobian
 from cellcoadd.builder.psf import psf_moments
 from cellcoadd.geometry.box import Box
-from cellcoadd.model.psf import PsfexPsf
+from cellcoadd.io import read_psfex
 from cellcoadd.sim.psf import focal_plane_psf
 
 PSFEX_FILE = Path("/work/shared/data/des/DECam_00154912_12_psfcat.psf")
@@ -76,7 +76,7 @@ def exposures(kind: str, ra: float, dec: float) -> list[Exposure]:
             psf = focal_plane_psf(base, boresight, CORNER, 0.05, 0.01)
             origin = (0, 0)
         else:
-            psf = PsfexPsf(PSFEX_FILE)
+            psf = read_psfex(PSFEX_FILE)
             origin = (int(1024 + 150 * k - size / 2), int(2048 - 300 * k - size / 2))
         out.append(
             Exposure(

@@ -58,6 +58,7 @@ def make_metadata(
     psf_size: int = 5,
     band: str = "r",
     patch: tuple[int, int] = (1, 1),
+    psf_corners: bool = False,
 ) -> PatchMetadata:
     return PatchMetadata(
         skymap_config=config,
@@ -66,7 +67,7 @@ def make_metadata(
         patch=patch,
         band=band,
         units="nJy",
-        build_config=BuildConfig(n_noise=n_noise, psf_size=psf_size),
+        build_config=BuildConfig(n_noise=n_noise, psf_size=psf_size, psf_corners=psf_corners),
     )
 
 
@@ -120,6 +121,7 @@ def make_cell(
             psf_size=meta.psf_size,
             inputs=make_records(rng, meta.band, 0, n_rejected),
             mask_bits=meta.mask_bits,
+            psf_corners=meta.build_config.psf_corners,
         )
     shape = outer.shape
     planes = ("image", "variance", "mfrac")
@@ -130,11 +132,16 @@ def make_cell(
         values = {name: rng.standard_normal(shape, dtype=np.float32) for name in planes}
         noise = rng.standard_normal((meta.n_noise, *shape), dtype=np.float32)
     psf = rng.uniform(size=(meta.psf_size, meta.psf_size))
+    corners = None
+    if meta.build_config.psf_corners:
+        corners = rng.uniform(size=(4, meta.psf_size, meta.psf_size))
+        corners /= corners.sum(axis=(1, 2), keepdims=True)
     return CellCoadd(
         **values,
         mask=rng.integers(0, 256, size=shape, dtype=np.int32),
         noise=noise,
         psf=psf / psf.sum(),
+        psf_corners=corners,
         inputs=make_records(rng, meta.band, int(rng.integers(1, 4)), n_rejected),
         tract=meta.tract,
         index=index,
@@ -155,10 +162,14 @@ def make_patch(
     empty: tuple[tuple[int, int], ...] = (),
     missing: tuple[tuple[int, int], ...] = (),
     arbitrary_bits: bool = True,
+    psf_corners: bool = False,
 ) -> PatchCoadd:
-    """A patch with random contents (deterministic in ``seed``)."""
+    """A patch with random contents (deterministic in ``seed``); ``psf_corners``: with
+    random corner PSF stamps."""
     rng = np.random.default_rng(seed)
-    meta = make_metadata(config, n_noise=n_noise, psf_size=psf_size, band=band, patch=patch)
+    meta = make_metadata(
+        config, n_noise=n_noise, psf_size=psf_size, band=band, patch=patch, psf_corners=psf_corners
+    )
     cells = {
         index: make_cell(meta, index, rng, empty=index in empty, arbitrary_bits=arbitrary_bits)
         for index in meta.all_cell_indices

@@ -3,6 +3,7 @@ file formats, the file-size estimate and ``cellcoadd info`` follow."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import inspect
 import json
@@ -49,7 +50,7 @@ def test_description_is_well_formed():
 
 
 def test_model_follows_the_description():
-    patch = make_patch(n_noise=3, psf_size=7)
+    patch = make_patch(n_noise=3, psf_size=7, psf_corners=True)
     cell = next(iter(patch.values()))
     params = set(inspect.signature(CellCoadd).parameters)
     assert params - _NOT_PLANES == set(cell_planes.plane_names())
@@ -74,11 +75,21 @@ def test_model_follows_the_description():
         patch.stitch("psf")  # type: ignore[arg-type]
     # equality compares every plane
     for spec in cell_planes.PLANES:
-        other = make_patch(n_noise=3, psf_size=7)
+        other = make_patch(n_noise=3, psf_size=7, psf_corners=True)
         changed = next(iter(other.values()))
         array = getattr(changed, spec.name)
         array.view(np.uint8).reshape(-1)[0] ^= 1
         assert not changed.equals(cell)
+    # an optional plane may be absent (None), which equality tells from present
+    without = make_patch(n_noise=3, psf_size=7)
+    bare = next(iter(without.values()))
+    assert bare.psf_corners is None
+    assert bare.plane_names == cell_planes.required_plane_names()
+    assert cell.plane_names == cell_planes.plane_names()
+    assert [spec.name for spec in cell_planes.PLANES if spec.optional] == ["psf_corners"]
+    with_corners = copy.copy(bare)
+    with_corners.psf_corners = np.stack([bare.psf] * 4)
+    assert not with_corners.equals(bare) and not bare.equals(with_corners)
 
 
 def test_unit_keywords_follow_the_unit_kinds():
@@ -96,16 +107,17 @@ def test_unit_keywords_follow_the_unit_kinds():
             assert keys == {}
 
 
-@pytest.mark.parametrize("n_noise", [0, 2])
+@pytest.mark.parametrize("n_noise, corners", [(0, False), (2, False), (2, True)])
 @pytest.mark.parametrize("compression", [None, "lossless"])
-def test_fits_files_follow_the_description(tmp_path, n_noise, compression):
-    patch = make_patch(n_noise=n_noise, psf_size=5)
+def test_fits_files_follow_the_description(tmp_path, n_noise, corners, compression):
+    patch = make_patch(n_noise=n_noise, psf_size=5, psf_corners=corners)
     path = tmp_path / "patch.fits"
     api.write(patch, path, compression=compression)
     stored = [
         spec
         for spec in cell_planes.PLANES
-        if n_noise or not spec.per_realization  # no zero-size HDUs
+        if (n_noise or not spec.per_realization)  # no zero-size HDUs
+        and (corners or not spec.optional)  # nor absent optional planes
     ]
     index = next(iter(patch))
     with fitsio.FITS(str(path)) as fits:
@@ -133,17 +145,22 @@ def test_fits_files_follow_the_description(tmp_path, n_noise, compression):
     ]
 
 
-def test_hdf5_files_follow_the_description(tmp_path):
-    patch = make_patch(n_noise=2, psf_size=5)
+@pytest.mark.parametrize("corners", [False, True])
+def test_hdf5_files_follow_the_description(tmp_path, corners):
+    patch = make_patch(n_noise=2, psf_size=5, psf_corners=corners)
     path = tmp_path / "patch.h5"
     api.write(patch, path)
+    held = next(iter(patch.values())).plane_names
+    assert ("psf_corners" in held) == corners
     with h5py.File(path, "r") as h5:
         listed = json.loads(bytes(h5.attrs["contents"]))["planes"]
-        assert listed == sorted(cell_planes.cell_objects())
+        assert listed == sorted((*held, cell_planes.INPUTS))
         group = h5["cells"][hdf5_format.group_name(next(iter(patch)))]
-        assert list(group) == sorted(cell_planes.cell_objects())  # HDF5 lists names sorted
+        assert list(group) == listed  # HDF5 lists names sorted
         shapes = expected_shapes(patch.metadata, next(iter(patch.values())).outer_bbox)
         for spec in cell_planes.PLANES:
+            if spec.name not in held:
+                continue
             dataset = group[spec.name]
             assert dataset.dtype == spec.stored_dtype
             assert dataset.shape == shapes[spec.name]
@@ -176,7 +193,7 @@ def test_a_plane_added_to_the_description_is_written(tmp_path, monkeypatch):
         weight, name="kernel", dtype=psf_spec.dtype, stamp=True, compression="none"
     )
     monkeypatch.setattr(cell_planes, "PLANES", (*cell_planes.PLANES, weight, stamp))
-    patch = make_patch(n_noise=1, psf_size=5)
+    patch = make_patch(n_noise=1, psf_size=5, psf_corners=True)
     rng = np.random.default_rng(1)
     for cell in patch.values():  # the model has no such attributes: given by hand here
         cell.weight = rng.standard_normal(cell.shape, dtype=np.float32)  # type: ignore[attr-defined]

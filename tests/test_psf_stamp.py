@@ -12,6 +12,7 @@ from exposure_factory import make_exposure
 from cellcoadd import BuildConfig, SkyMap, SkyMapConfig, build_cell, build_patch
 from cellcoadd.errors import ConfigError, PsfStampWarning
 from cellcoadd.model.build_config import DEFAULT_PSF_SIZE
+from cellcoadd.model.patch_coadd import FORMAT_VERSION
 from cellcoadd.pipelines.validation_settings import ValidationSettings
 
 COADD_SCALE = 0.2
@@ -156,7 +157,7 @@ def test_flux_outside_round_trips_and_old_tables_read_as_nan(tmp_path):
     assert values and all(2e-3 < v < 2e-2 for v in values)
     for name in ("patch.fits", "patch.h5"):
         back = api.read(api.write(coadd, tmp_path / name) or tmp_path / name)
-        assert back.metadata.format_version == "1.3"
+        assert back.metadata.format_version == FORMAT_VERSION
         for index, cell in coadd.cells.items():
             pairs = zip(cell.inputs, back.cells[index].inputs, strict=True)
             assert all(a.identical(b) for a, b in pairs)

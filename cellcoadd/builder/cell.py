@@ -124,9 +124,25 @@ class CellBlock:
                     value=config.stamp_size,
                     cell=cell.index,
                 )
+            border = min(cell.inner_bbox.x_start - cell.outer_bbox.x_start,
+                         cell.inner_bbox.y_start - cell.outer_bbox.y_start,
+                         cell.outer_bbox.x_stop - cell.inner_bbox.x_stop,
+                         cell.outer_bbox.y_stop - cell.inner_bbox.y_stop)  # fmt: skip
+            if config.psf_corners and config.stamp_size // 2 > border:
+                raise ConfigError(
+                    f"psf_corners: a {config.stamp_size}-pixel PSF stamp centred on a corner "
+                    f"pixel of the inner box of cell {cell.index} reaches beyond its "
+                    f"{border}-pixel border; use psf_size <= {2 * border + 1}",
+                    value=config.stamp_size,
+                    allowed=(3, 2 * border + 1),
+                    cell=cell.index,
+                )
         self.settings, self.config = settings, config
         self.sums = BlockSums(
-            [cell.outer_bbox for cell in self.cells], config.n_noise, config.stamp_size
+            [cell.outer_bbox for cell in self.cells],
+            config.n_noise,
+            config.stamp_size,
+            n_psf=5 if config.psf_corners else 1,
         )
         self.records: list[list[InputRecord]] = [[] for _ in cells]
         self.jacobians = [cell_jacobian(cell) for cell in cells]
@@ -225,7 +241,7 @@ class CellBlock:
                 self._reject(i, exposure, found)
                 continue
             try:
-                psf_stamp = coadd_psf_contribution(cell, found, self.config.stamp_size)
+                psf_stamp = coadd_psf_contribution(cell, found, *self._psf_settings)
             except PsfError:
                 self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
                 continue
@@ -267,7 +283,7 @@ class CellBlock:
         for i, found, psf_stamp in members:
             if psf_stamp is None:
                 try:
-                    psf_stamp = coadd_psf_contribution(self.cells[i], found, self.config.stamp_size)
+                    psf_stamp = coadd_psf_contribution(self.cells[i], found, *self._psf_settings)
                 except PsfError:
                     status = Rejection(InputStatus.BAD_PSF, found.overlap_fraction)
                     self._reject(i, exposure, status)
@@ -277,6 +293,11 @@ class CellBlock:
         if used:
             box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in members])
             contributions.append((box, *warped, used))
+
+    @property
+    def _psf_settings(self) -> tuple[int, bool]:
+        """Stamp size and whether the corners are drawn (:func:`coadd_psf_contribution`)."""
+        return self.config.stamp_size, self.config.psf_corners
 
     def _warp(
         self, found: Candidate, mapping: PixelMapping, exposure: Exposure, bad_bits: int
@@ -302,9 +323,11 @@ class CellBlock:
         return warped_contribution(candidate, pixels, mask, self.config.n_noise)
 
     def _accept(self, i: int, exposure: Exposure, found: Candidate, psf_stamp: np.ndarray) -> None:
-        """Record ``exposure`` as used by cell ``i``, with its PSF (its pixels are added by
-        :meth:`BlockSums.add`)."""
+        """Record ``exposure`` as used by cell ``i``, with its PSF stamps (centre first; its
+        pixels are added by :meth:`BlockSums.add`). The record's PSF moments are the
+        centre's."""
         self.sums.add_psf(i, psf_stamp, found.weight)
+        psf_stamp = psf_stamp[0]
         moments = psf_moments(psf_stamp, self.jacobians[i])
         # the model was drawn with unit flux: what the stamp lacks lies outside it
         moments["psf_flux_outside"] = float(1.0 - psf_stamp.sum())

@@ -26,6 +26,7 @@ from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.planes import CORNER_ORDER
 from cellcoadd.model.sources import ExposureHeader
 
 
@@ -34,7 +35,8 @@ class CellSums:
 
     ``planes`` holds them all, in the order of
     :func:`~cellcoadd.builder.kernels.input_planes.input_planes` (image, K noise
-    realizations, variance, masked fraction).
+    realizations, variance, masked fraction); ``psf`` the PSF stamps (centre, then the
+    corners if drawn), ``(n_psf, n, n)``.
     """
 
     def __init__(
@@ -70,20 +72,22 @@ class BlockSums:
         Number of noise realizations (the sums hold ``n_noise + 3`` planes).
     psf_size : int
         Side of the PSF stamps, pixels.
+    n_psf : int
+        PSF stamps per cell: 1 (the centre), or 5 (the centre and the inner box's corners).
     """
 
-    def __init__(self, boxes: Sequence[Box], n_noise: int, psf_size: int) -> None:
+    def __init__(self, boxes: Sequence[Box], n_noise: int, psf_size: int, n_psf: int = 1) -> None:
         self.boxes = list(boxes)
         self.box = Box.enclosing(self.boxes)
         self.n_planes = n_noise + 3
         self.shared = np.zeros((0, 0, 0))  # allocated by the first addition
         self.shared_mask = np.zeros((0, 0), dtype=np.int32)
         self.own: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.boxes)
-        self.psf = [np.zeros((psf_size, psf_size)) for _ in self.boxes]
+        self.psf = [np.zeros((n_psf, psf_size, psf_size)) for _ in self.boxes]
         self.weight = [0.0] * len(self.boxes)
 
     def add_psf(self, i: int, stamp: np.ndarray, weight: float) -> None:
-        """Add one input's PSF stamp and weight to cell ``i``."""
+        """Add one input's PSF stamps (``(n_psf, n, n)``) and weight to cell ``i``."""
         self.psf[i] += weight * stamp
         self.weight[i] += weight
 
@@ -139,19 +143,49 @@ class BlockSums:
         return CellSums(own[0], own[1], self.psf[i], self.weight[i])
 
 
-def coadd_psf_contribution(cell: Cell, candidate: Candidate, psf_size: int) -> np.ndarray:
-    """The exposure PSF at the cell centre, warped like the image into the PSF stamp.
+def coadd_psf_contribution(
+    cell: Cell, candidate: Candidate, psf_size: int, corners: bool = False
+) -> np.ndarray:
+    """The exposure PSF at the cell centre, warped like the image into the PSF stamp; with
+    ``corners``, also at the 4 corner pixels of the inner box.
 
-    The stamp is centred on the cell-centre pixel; its pixels map to the exposure through
-    the same mapping as the image pixels, so the PSF has the image's sub-pixel phase.
+    Each stamp is centred on its pixel (the cell-centre pixel ``(nx // 2, ny // 2)`` of the
+    outer box, the corners those of :attr:`CellCoadd.psf_corner_positions`); its pixels
+    map to the exposure through the same mapping as the image pixels, so the PSF has the
+    image's sub-pixel phase there. Returns shape ``(1, n, n)``, or ``(5, n, n)`` with
+    ``corners`` (centre first, then the corners in the order of
+    :data:`~cellcoadd.model.planes.CORNER_ORDER`).
+
+    Raises
+    ------
+    PsfError
+        When the PSF cannot be drawn at one of the positions: the input is then rejected
+        for the whole cell, so the centre and corner PSFs average the same inputs.
     """
-    mapping = candidate.mapping
     ny, nx = cell.outer_bbox.shape
+    centres = [(nx // 2, ny // 2)]
+    if corners:
+        centres += corner_pixels(cell)
+    return np.stack([_psf_stamp(candidate, cx, cy, psf_size) for cx, cy in centres])
+
+
+def corner_pixels(cell: Cell) -> list[tuple[int, int]]:
+    """Outer-box array pixels ``(x, y)`` of the inner box's corner pixels, in the order of
+    :data:`~cellcoadd.model.planes.CORNER_ORDER`."""
+    rows, cols = cell.inner_bbox.slices_in(cell.outer_bbox)
+    xs, ys = (cols.start, cols.stop - 1), (rows.start, rows.stop - 1)
+    return [(xs[i], ys[j]) for i, j in CORNER_ORDER]
+
+
+def _psf_stamp(candidate: Candidate, cx: int, cy: int, psf_size: int) -> np.ndarray:
+    """The exposure PSF drawn at the exposure position of outer-box pixel ``(cx, cy)``
+    and warped into the ``psf_size`` stamp centred there (which must lie in the box)."""
+    mapping = candidate.mapping
     half = psf_size // 2
-    rows = slice(ny // 2 - half, ny // 2 + half + 1)
-    cols = slice(nx // 2 - half, nx // 2 + half + 1)
+    rows = slice(cy - half, cy + half + 1)
+    cols = slice(cx - half, cx + half + 1)
     x, y = mapping.x[rows, cols], mapping.y[rows, cols]
-    x_center, y_center = float(mapping.x[ny // 2, nx // 2]), float(mapping.y[ny // 2, nx // 2])
+    x_center, y_center = float(mapping.x[cy, cx]), float(mapping.y[cy, cx])
     box = footprint_box(_Positions(x, y))
     stamp = draw_exposure_psf(candidate.exposure, x_center, y_center, box)
     warped = warp_planes(stamp[None], x - box.x_start, y - box.y_start)[0]
@@ -200,8 +234,8 @@ def finish_cell(
     config: BuildConfig,
     mask_bits: MaskBits,
 ) -> CellCoadd:
-    """The coadd of ``cell`` from its sums: weighted means as float32, the PSF normalised
-    to unit sum; an empty cell when no input was used."""
+    """The coadd of ``cell`` from its sums: weighted means as float32, the PSF (and each
+    corner PSF) normalised to unit sum; an empty cell when no input was used."""
     common = {
         "inputs": records,
         "tract": cell.tract,
@@ -212,10 +246,18 @@ def finish_cell(
     }
     if sums.weight <= 0.0:
         return CellCoadd.empty(
-            n_noise=config.n_noise, psf_size=config.stamp_size, mask_bits=mask_bits, **common
+            n_noise=config.n_noise,
+            psf_size=config.stamp_size,
+            mask_bits=mask_bits,
+            psf_corners=config.psf_corners,
+            **common,
         )
     total = sums.weight
-    psf = sums.psf / sums.psf.sum()
+    # each stamp normalised on its own (the same division as before for the centre's)
+    psf = sums.psf[0] / sums.psf[0].sum()
+    corners = None
+    if len(sums.psf) > 1:
+        corners = sums.psf[1:] / sums.psf[1:].sum(axis=(1, 2), keepdims=True)
     planes = {
         "image": (sums.image / total).astype(np.float32),
         "variance": (sums.variance / total**2).astype(np.float32),
@@ -227,6 +269,7 @@ def finish_cell(
         mask=sums.mask,
         mfrac=np.clip(sums.mfrac / total, 0.0, 1.0).astype(np.float32),
         psf=psf,
+        psf_corners=corners,
         **common,
     )
 
@@ -257,6 +300,7 @@ __all__ = [
     "Contribution",
     "cell_jacobian",
     "coadd_psf_contribution",
+    "corner_pixels",
     "finish_cell",
     "input_record",
 ]

@@ -95,10 +95,16 @@ def patch_summary(path: str, legacy_zero_point: float | None = None) -> dict[str
 def stored_planes(meta: PatchMetadata) -> list[str]:
     """What each cell of a patch file stores, for ``cellcoadd info``: the planes of
     :data:`~cellcoadd.model.planes.PLANES` (with their number of realizations or stamp size;
-    per-realization planes left out when there are none), then the inputs table."""
+    per-realization planes left out when there are none, optional ones when the build
+    configuration did not ask for them), then the inputs table."""
     described = []
+    optional = {"psf_corners": meta.build_config.psf_corners}
     for spec in cell_planes.PLANES:
-        if spec.per_realization:
+        if spec.optional and not optional.get(spec.name, False):
+            continue
+        if spec.layers:
+            described.append(f"{spec.name} ({spec.layers}x{meta.psf_size}x{meta.psf_size})")
+        elif spec.per_realization:
             if meta.n_noise:
                 described.append(f"{spec.name} ({meta.n_noise} realizations)")
         elif spec.stamp:

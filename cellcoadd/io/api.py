@@ -47,7 +47,6 @@ from cellcoadd.io.foreign.cell_coadds_layout import (
 )
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
 from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
-from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchCoadd
 
@@ -207,10 +206,10 @@ def _estimated_size(patch_coadd: PatchCoadd) -> int:
     """
     per_plane = 2 * 2880 + 2880
     total = 8 * 2880 + len(patch_coadd.metadata.model_dump_json())
-    n_objects = len(planes.cell_objects())  # the planes and the inputs table
     for cell in patch_coadd.values():
-        total += sum(getattr(cell, spec.name).nbytes for spec in planes.PLANES)
-        total += n_objects * per_plane
+        held = cell.plane_names
+        total += sum(getattr(cell, name).nbytes for name in held)
+        total += (len(held) + 1) * per_plane  # the planes and the inputs table
         total += 128 * len(cell.inputs) + 4096  # inputs table rows, identity JSON
     return total
 

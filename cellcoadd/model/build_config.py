@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from cellcoadd.errors import ConfigError
 from cellcoadd.model.mask_presets import MASK_PRESETS
@@ -74,6 +81,14 @@ class BuildConfig(BaseModel):
         median of its variance plane over the valid pixels, the same value that sets its
         weight), so they carry no image of the sources even where the variance plane
         includes the sources' Poisson noise; or ``"pixel"``, each pixel's own variance.
+    psf_corners : bool
+        Also draw the coadd PSF at the 4 corner pixels of each cell's inner box
+        (``CellCoadd.psf_corners``, format 1.4), with the same inputs and weights as the
+        centre's, so that :meth:`CellCoadd.psf_at` interpolates the PSF across the cell.
+        Off by default: it adds ~4 PSF draws and warps per input and cell (measured in
+        ``docs/shear.md``); it needs ``psf_size // 2 <= cell_border`` (each corner stamp
+        lies in the outer box). Left out of the stored JSON when off, so configurations
+        and files from before it keep their bytes and hashes.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -100,6 +115,18 @@ class BuildConfig(BaseModel):
     )
     mapping_tolerance: float = Field(1e-3, gt=0.0, le=0.1, description="pixels")
     noise_variance: Literal["background", "pixel"] = "background"
+    psf_corners: bool = Field(
+        False,
+        description="also store the coadd PSF at the 4 corner pixels of each cell's inner box",
+    )
+
+    @model_serializer(mode="wrap")
+    def _drop_psf_corners_off(self, handler: Any) -> dict[str, Any]:
+        # absent when off: configurations, hashes and files from before it are unchanged
+        data = handler(self)
+        if data.get("psf_corners", True) is False:
+            del data["psf_corners"]
+        return data
 
     @model_validator(mode="before")
     @classmethod

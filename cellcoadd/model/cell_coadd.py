@@ -14,6 +14,10 @@ Every plane covers the cell's *outer* box: ``plane[j, i]`` is tract pixel
 * ``mfrac``: fraction of the coadd weight that came from masked input pixels, float32.
 * ``psf``: odd square float64 stamp of the coadd PSF at the cell centre (pixel response
   included), centred on its central pixel, summing to 1.
+* ``psf_corners``: optional (None when the build did not ask for it, and in files before
+  format 1.4), float64 ``(4, n, n)``: the coadd PSF at the 4 corner pixels of the inner
+  box, like ``psf`` (:data:`~cellcoadd.model.planes.CORNER_ORDER`);
+  :meth:`CellCoadd.psf_at` interpolates the PSF between them and the centre.
 
 A cell with no used input is *empty*: every float plane is NaN, the mask has ``NO_DATA``
 set everywhere (checked by :class:`~cellcoadd.model.patch_coadd.PatchCoadd`) and its
@@ -32,12 +36,12 @@ from typing import Any, NamedTuple
 import numpy as np
 from astropy.wcs import WCS
 
-from cellcoadd.errors import InvalidCoaddError
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.planes import grid_plane_names, plane_names
+from cellcoadd.model.planes import CORNER_ORDER, grid_plane_names, plane_names
 from cellcoadd.model.units import mask_plane_cards
 from cellcoadd.model.wcs_codec import wcs_to_record
 
@@ -72,6 +76,10 @@ class CellCoadd:
         ``K >= 0`` noise realizations (float, converted to float32).
     psf : ndarray, shape ``(n, n)`` with ``n`` odd
         PSF stamp (float, converted to float64); sums to 1 unless the cell is empty.
+    psf_corners : ndarray, shape ``(4, n, n)``, optional
+        PSF stamps at the inner box's corner pixels, in the order of
+        :data:`~cellcoadd.model.planes.CORNER_ORDER` (float, converted to float64); each
+        sums to 1 unless the cell is empty. None (the default): not built.
     inputs : iterable of InputRecord (or dicts)
         Every input that overlapped the cell, used or rejected.
     tract : int
@@ -110,6 +118,7 @@ class CellCoadd:
         outer_bbox: Box,
         wcs: WCS,
         common: CellCommon | None = None,
+        psf_corners: np.ndarray | None = None,
     ) -> None:
         self.tract = _as_int("tract", tract)
         self.index = _as_index(index)
@@ -144,6 +153,15 @@ class CellCoadd:
             raise InvalidCoaddError(
                 f"{name}: psf must be an odd square 2-D stamp, got shape {self.psf.shape}"
             )
+        self.psf_corners: np.ndarray | None = None
+        if psf_corners is not None:
+            corners = _float_array(name, "psf_corners", psf_corners, np.float64)
+            if corners.shape != (len(CORNER_ORDER), *self.psf.shape):
+                raise InvalidCoaddError(
+                    f"{name}: psf_corners must have shape (4, n, n) with the psf's n = "
+                    f"{self.psf.shape[0]}, got {corners.shape}"
+                )
+            self.psf_corners = corners
         try:
             self.inputs: list[InputRecord] = [
                 item if isinstance(item, InputRecord) else InputRecord.model_validate(item)
@@ -167,6 +185,12 @@ class CellCoadd:
             total = float(np.sum(self.psf))
             if not abs(total - 1.0) <= PSF_SUM_TOLERANCE:
                 raise InvalidCoaddError(f"{name}: psf must sum to 1 (got {total!r})")
+            if self.psf_corners is not None:
+                sums = np.sum(self.psf_corners, axis=(1, 2))
+                if not np.all(np.abs(sums - 1.0) <= PSF_SUM_TOLERANCE):
+                    raise InvalidCoaddError(
+                        f"{name}: each psf_corners stamp must sum to 1 (got {sums.tolist()})"
+                    )
 
     @classmethod
     def empty(
@@ -182,11 +206,13 @@ class CellCoadd:
         inputs: Iterable[InputRecord | dict[str, Any]] = (),
         mask_bits: MaskBits | None = None,
         common: CellCommon | None = None,
+        psf_corners: bool = False,
     ) -> CellCoadd:
         """A cell with no used input: NaN planes and PSF, ``NO_DATA`` everywhere in the mask.
 
         ``inputs`` lists the rejected inputs (none may be used); ``mask_bits`` default to
-        ``common``'s.
+        ``common``'s; ``psf_corners``: give it NaN corner stamps too (a build that draws
+        them), else None.
         """
         if mask_bits is None and common is not None:
             mask_bits = common.mask_bits
@@ -199,6 +225,9 @@ class CellCoadd:
             noise=np.full((n_noise, *shape), np.nan, dtype=np.float32),
             mfrac=np.full(shape, np.nan, dtype=np.float32),
             psf=np.full((psf_size, psf_size), np.nan, dtype=np.float64),
+            psf_corners=(
+                np.full((len(CORNER_ORDER), psf_size, psf_size), np.nan) if psf_corners else None
+            ),
             inputs=inputs,
             tract=tract,
             index=index,
@@ -230,6 +259,101 @@ class CellCoadd:
     def n_noise(self) -> int:
         """Number ``K`` of noise realizations."""
         return int(self.noise.shape[0])
+
+    @property
+    def plane_names(self) -> tuple[str, ...]:
+        """Names of the planes this cell holds, in storage order: every plane of
+        :data:`~cellcoadd.model.planes.PLANES` but the optional ones it lacks (None)."""
+        return tuple(name for name in plane_names() if getattr(self, name) is not None)
+
+    @property
+    def psf_centre(self) -> tuple[int, int]:
+        """Array pixel ``(x, y)`` of the cell centre, where :attr:`psf` is centred:
+        ``(nx // 2, ny // 2)`` of the outer box."""
+        ny, nx = self.shape
+        return nx // 2, ny // 2
+
+    @property
+    def psf_corner_positions(self) -> np.ndarray:
+        """Array pixels ``(x, y)`` (shape (4, 2), integers) where the stamps of
+        :attr:`psf_corners` are centred: the inner box's corner pixels, in the order of
+        :data:`~cellcoadd.model.planes.CORNER_ORDER`."""
+        rows, cols = self.inner_bbox.slices_in(self.outer_bbox)
+        xs, ys = (cols.start, cols.stop - 1), (rows.start, rows.stop - 1)
+        return np.array([(xs[i], ys[j]) for i, j in CORNER_ORDER], dtype=np.int64)
+
+    def psf_at(self, x: float, y: float, *, extrapolate: bool = False) -> np.ndarray:
+        """The coadd PSF at array pixel ``(x, y)``, interpolated from :attr:`psf` and
+        :attr:`psf_corners`.
+
+        Parameters
+        ----------
+        x, y : float
+            Position in the cell's array pixel coordinates, pixels: ``plane[j, i]`` is
+            pixel ``(x, y) = (i, j)``, 0-based over the outer box, pixel centres at
+            integers (tract pixel ``(x + outer_bbox.x_start, y + outer_bbox.y_start)``, and
+            :attr:`wcs` maps ``(x, y)`` to the sky).
+        extrapolate : bool
+            Allow positions outside the inner box (anywhere in the outer box), where the
+            interpolation extrapolates; by default those are refused.
+
+        Returns
+        -------
+        ndarray, shape ``psf.shape``, float64
+            The PSF image (pixel response included) of a point source at a pixel centre
+            near ``(x, y)``, centred on the stamp's central pixel like :attr:`psf`,
+            normalised to unit sum (NaN for an empty cell). The sub-pixel offset of
+            ``(x, y)`` is not applied: like :attr:`psf`, the stamp is for a source at a
+            pixel centre.
+
+        Raises
+        ------
+        CellCoaddValueError
+            When the cell has no :attr:`psf_corners` (built without
+            ``BuildConfig(psf_corners=True)``, or read from a file before format 1.4).
+        CellCoaddRangeError
+            When ``(x, y)`` lies outside the inner box (pixel edges included) and
+            ``extrapolate`` is false, or outside the outer box.
+
+        Notes
+        -----
+        The stamps are combined with the weights of :func:`psf_interpolation_weights`:
+        bilinear interpolation between the corners plus a quadratic "bubble" through the
+        centre, exact for a PSF varying as ``a + b x + c y + d x y + e (x^2 + y^2)``
+        (bilinear alone is exact for the first four terms only, and would not return
+        :attr:`psf` at the centre). Accuracy: ``docs/shear.md``.
+        """
+        if self.psf_corners is None:
+            raise CellCoaddValueError(
+                f"cell {self.index} of tract {self.tract} has no psf_corners (built without "
+                "BuildConfig(psf_corners=True), or read from a file before format 1.4): "
+                "psf_at needs them; cell.psf is the PSF at the centre",
+                cell=self.index,
+            )
+        if extrapolate:
+            ny, nx = self.shape
+            low, high = (-0.5, -0.5), (nx - 0.5, ny - 0.5)
+            where = "outer"
+        else:
+            rows, cols = self.inner_bbox.slices_in(self.outer_bbox)
+            low, high = (cols.start - 0.5, rows.start - 0.5), (cols.stop - 0.5, rows.stop - 0.5)
+            where = "inner"
+        for axis, value, lo, hi in (("x", x, low[0], high[0]), ("y", y, low[1], high[1])):
+            if not lo <= value <= hi:
+                raise CellCoaddRangeError(
+                    f"cell {self.index} of tract {self.tract}: {axis} = {value} is outside the "
+                    f"{where} box [{lo}, {hi}] (array pixels)"
+                    + ("" if extrapolate else "; extrapolate=True allows the outer box"),
+                    value=value,
+                    low=lo,
+                    high=hi,
+                    cell=self.index,
+                )
+        weights = psf_interpolation_weights(
+            float(x), float(y), self.psf_centre, self.psf_corner_positions
+        )
+        stamp = weights[0] * self.psf + np.tensordot(weights[1:], self.psf_corners, axes=1)
+        return stamp / stamp.sum()
 
     @property
     def psf_flux_outside(self) -> float:
@@ -383,8 +507,12 @@ class CellCoadd:
             other.outer_bbox,
         ):
             return False
-        for plane in plane_names():
-            if not arrays_identical(getattr(self, plane), getattr(other, plane)):
+        for name in plane_names():
+            mine, theirs = getattr(self, name), getattr(other, name)
+            if mine is None or theirs is None:  # an optional plane
+                if mine is not theirs:
+                    return False
+            elif not arrays_identical(mine, theirs):
                 return False
         if len(self.inputs) != len(other.inputs) or not all(
             a.identical(b) for a, b in zip(self.inputs, other.inputs, strict=True)
@@ -405,6 +533,53 @@ class CellCoadd:
             f"inputs={len(self.inputs)} ({self.n_used} used), K={self.n_noise}, "
             f"psf={self.psf.shape[0]}x{self.psf.shape[1]})"
         )
+
+
+def psf_interpolation_weights(
+    x: float, y: float, centre: tuple[float, float], corners: np.ndarray
+) -> np.ndarray:
+    """Weights of the centre and corner PSFs for the PSF at ``(x, y)``
+    (:meth:`CellCoadd.psf_at`).
+
+    Parameters
+    ----------
+    x, y : float
+        The position (any pixel coordinates, the same as the others').
+    centre : (float, float)
+        ``(xc, yc)``, the position of the centre stamp, strictly inside the corners' box.
+    corners : ndarray, shape (4, 2)
+        ``(x, y)`` of the corner stamps in the order of
+        :data:`~cellcoadd.model.planes.CORNER_ORDER`: ``(x0, y0), (x1, y0), (x0, y1),
+        (x1, y1)``.
+
+    Returns
+    -------
+    ndarray, shape (5,)
+        Weights of the centre, then of the 4 corners; they sum to 1.
+
+    Notes
+    -----
+    With ``u = (x - x0) / (x1 - x0)``, ``v`` likewise, the bilinear weights of the corners
+    are ``B = ((1-u)(1-v), u(1-v), (1-u)v, uv)``. The bubble
+    ``b = (qx + qy) / 2``, ``qx = (x - x0)(x1 - x) / ((xc - x0)(x1 - xc))`` (``qy``
+    likewise), is 1 at the centre and 0 at the corners; the weights are ``b`` for the
+    centre and ``B(x, y) - b B(xc, yc)`` for the corners. At the centre they give the
+    centre stamp alone, at a corner that corner's; they interpolate exactly any
+    ``a + b x + c y + d x y + e (x^2 + y^2)`` when the corners' box is square (the cells'
+    inner box), as a PSF's size varies over a focal plane to second order. Corner weights
+    may be negative (then the interpolated stamp is still normalised to unit sum).
+    """
+    (x0, y0), (x1, y1) = corners[0], corners[3]
+    xc, yc = centre
+
+    def bilinear(px: float, py: float) -> np.ndarray:
+        u, v = (px - x0) / (x1 - x0), (py - y0) / (y1 - y0)
+        return np.array([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v])
+
+    qx = (x - x0) * (x1 - x) / ((xc - x0) * (x1 - xc))
+    qy = (y - y0) * (y1 - y) / ((yc - y0) * (y1 - yc))
+    bubble = 0.5 * (qx + qy)
+    return np.concatenate(([bubble], bilinear(x, y) - bubble * bilinear(xc, yc)))
 
 
 def arrays_identical(first: np.ndarray, second: np.ndarray) -> bool:

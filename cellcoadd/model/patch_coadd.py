@@ -60,7 +60,9 @@ from cellcoadd.model.units import (
 #: FITS pixel-plane HDU.
 #: also in 1.3: a ``psf_flux_outside`` column in the inputs tables (NaN when read from older
 #: files); ``BuildConfig.psf_size`` may be left out (builds record the size they used).
-FORMAT_VERSION = "1.3"
+#: 1.4: the optional plane ``psf_corners`` (``BuildConfig.psf_corners``; the FITS column
+#: ``HDU_PSF_CORNERS``, -1 without it; an HDF5 dataset listed in ``contents`` when stored).
+FORMAT_VERSION = "1.4"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)
@@ -379,6 +381,7 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         allowed = set(metadata.all_cell_indices)
         no_data = metadata.mask_bits.value("NO_DATA")
         checked: dict[tuple[int, int], CellCoadd] = {}
+        first_corners: np.ndarray | None = None
         for key, cell in cells.items():
             key = (int(key[0]), int(key[1]))
             if not isinstance(cell, CellCoadd):
@@ -411,6 +414,14 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
                     f"cell {key} has a {cell.psf.shape} PSF stamp, expected side "
                     f"{metadata.psf_size}"
                 )
+            if checked and (cell.psf_corners is None) != (first_corners is None):
+                raise InvalidCoaddError(
+                    f"cell {key} {'lacks' if cell.psf_corners is None else 'has'} psf_corners "
+                    f"but cell {next(iter(checked))} "
+                    f"{'has' if cell.psf_corners is None else 'lacks'} them: all the cells of "
+                    "a patch have them or none does"
+                )
+            first_corners = cell.psf_corners if not checked else first_corners
             unknown = metadata.mask_bits.unknown_bits(cell.mask)
             if unknown:
                 raise InvalidCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
@@ -426,6 +437,11 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
                 cell.attach(common)
                 checked[key] = cell
         self.cells: dict[tuple[int, int], CellCoadd] = {k: checked[k] for k in sorted(checked)}
+
+    @property
+    def has_psf_corners(self) -> bool:
+        """Whether the cells have :attr:`CellCoadd.psf_corners` (all or none do)."""
+        return any(cell.psf_corners is not None for cell in self.cells.values())
 
     def __getitem__(self, index: tuple[int, int]) -> CellCoadd:
         return self.cells[index]

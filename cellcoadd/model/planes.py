@@ -8,7 +8,9 @@ its table of inputs, :data:`INPUTS` (see :mod:`cellcoadd.model.inputs`).
 Conventions are those of :mod:`cellcoadd.model.cell_coadd`: a cell-grid plane covers the
 cell's outer box, ``plane[j, i]`` being tract pixel ``(x_start + i, y_start + j)``; a
 per-realization plane has a leading axis of the ``K`` noise realizations; the PSF is an
-odd square stamp centred on its central pixel.
+odd square stamp centred on its central pixel. An optional plane
+(:attr:`PlaneSpec.optional`) may be absent from a cell (``None``): all the cells of a patch
+have it or none does, as the patch's build configuration says.
 """
 
 from __future__ import annotations
@@ -59,6 +61,12 @@ class PlaneSpec:
         Unit kind of the values (see :data:`UnitKind`).
     doc : str
         One line saying what the plane holds.
+    layers : int
+        A leading axis of this fixed length (0: none), e.g. the 4 corner stamps of
+        ``psf_corners``; not combined with ``per_realization``.
+    optional : bool
+        The plane may be absent (``None`` in memory, nothing stored): cells built without
+        it, and files of a format version before it.
     """
 
     name: str
@@ -68,6 +76,8 @@ class PlaneSpec:
     compression: Compression
     unit: UnitKind
     doc: str
+    layers: int = 0
+    optional: bool = False
 
     @property
     def stored_dtype(self) -> np.dtype:
@@ -84,6 +94,8 @@ class PlaneSpec:
         """Array shape of the plane for a cell whose outer box has ``outer_shape`` (ny, nx),
         with ``n_noise`` realizations and ``psf_size``-pixel PSF stamps."""
         base = (psf_size, psf_size) if self.stamp else tuple(outer_shape)
+        if self.layers:
+            return (self.layers, *base)
         return (n_noise, *base) if self.per_realization else base
 
 
@@ -143,7 +155,23 @@ PLANES: tuple[PlaneSpec, ...] = (
         unit="normalised",
         doc="coadd PSF at the cell centre, pixel response included, summing to 1",
     ),
+    PlaneSpec(
+        "psf_corners",
+        np.dtype(np.float64),
+        per_realization=False,
+        stamp=True,
+        compression="none",
+        unit="normalised",
+        doc="coadd PSF at the 4 corner pixels of the inner box, each summing to 1 (1.4)",
+        layers=4,
+        optional=True,
+    ),
 )
+
+#: Order of the stamps of ``psf_corners``: the inner box's corner pixels as (x, y) picks of
+#: its first and last column and row, ``(x_start, y_start)``, ``(x_stop - 1, y_start)``,
+#: ``(x_start, y_stop - 1)``, ``(x_stop - 1, y_stop - 1)``.
+CORNER_ORDER: tuple[tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (1, 1))
 
 
 def plane_names() -> tuple[str, ...]:
@@ -162,12 +190,18 @@ def cell_objects() -> tuple[str, ...]:
     return (*plane_names(), INPUTS)
 
 
+def required_plane_names() -> tuple[str, ...]:
+    """Names of the planes every cell has (not :attr:`PlaneSpec.optional`)."""
+    return tuple(spec.name for spec in PLANES if not spec.optional)
+
+
 def plane(name: str) -> PlaneSpec:
     """The description of plane ``name`` (KeyError if there is none)."""
     return {spec.name: spec for spec in PLANES}[name]
 
 
 __all__ = [
+    "CORNER_ORDER",
     "INPUTS",
     "PLANES",
     "Compression",
@@ -177,4 +211,5 @@ __all__ = [
     "grid_plane_names",
     "plane",
     "plane_names",
+    "required_plane_names",
 ]

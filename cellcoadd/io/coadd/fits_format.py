@@ -6,7 +6,9 @@ walking every header to the end of the file, and fall back to that walk without 
 ``METADATA`` the metadata JSON as a uint8 image, HDU 2 ``CELLINDEX`` one row per cell
 (index, HDU numbers of its planes, identity JSON), then one HDU per (cell, plane) named
 ``CELL_<+cx>_<+cy>_<PLANE>``, planes in the order of :data:`~cellcoadd.model.planes.PLANES`
-followed by the inputs table. Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
+followed by the inputs table (an optional plane a cell lacks, such as ``psf_corners`` of a
+build without it, has no HDU and ``-1`` in its ``CELLINDEX`` column, which files before
+format 1.4 do not have). Every HDU carries CHECKSUM/DATASUM and ``DATACRC``, the CRC-32
 of its data unit as stored (see :mod:`cellcoadd.io._fits.checksums`), all verified on read
 when ``verify`` is true.
 
@@ -19,7 +21,8 @@ quiet NaN) are listed in the header, ``CCNFNUM`` of them in ``CCNFBITS`` (base64
 zlib-compressed little-endian uint32 position steps, in C order, then their uint32 bit
 patterns), and put back on reading: the round trip is bit for bit. Files written before
 stored those planes as int32 bit patterns with ``CCBITS = 'FLOAT32'``, still read. The mask
-is RICE_1 compressed; the float64 PSF, the tables and the metadata are never compressed.
+is RICE_1 compressed; the float64 PSF stamps, the tables and the metadata are never
+compressed.
 
 Every HDU of a plane on the cell's pixel grid (image, mask, variance, noise, mfrac) carries
 the cell's WCS cards, so viewers place each of them on the sky (the noise cube's third
@@ -87,11 +90,17 @@ def hdu_column(plane: str) -> str:
     return f"HDU_{plane.upper()}"
 
 
-def _cell_planes(n_noise: int) -> list[str]:
-    """The HDUs of a cell, in file order: its planes, then its inputs table."""
-    # no zero-size images in FITS: with K = 0 the per-realization planes have no HDU
+def _cell_planes(n_noise: int, present: tuple[str, ...]) -> list[str]:
+    """The HDUs of a cell holding the planes ``present``, in file order: its planes, then
+    its inputs table."""
+    # no zero-size images in FITS: with K = 0 the per-realization planes have no HDU;
+    # an optional plane a cell lacks has none either (its CELLINDEX column says -1)
     return [
-        *(spec.name for spec in cell_planes.PLANES if n_noise > 0 or not spec.per_realization),
+        *(
+            spec.name
+            for spec in cell_planes.PLANES
+            if (n_noise > 0 or not spec.per_realization) and spec.name in present
+        ),
         cell_planes.INPUTS,
     ]
 
@@ -120,7 +129,9 @@ def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -
     # looked up on the module at each write, so tests can stand in for it
     payload, version = format_version.metadata_payload(patch.metadata)
     indices = list(patch.cells)
-    planes = _cell_planes(patch.metadata.n_noise)
+    # every cell of a patch holds the same planes (PatchCoadd checks it)
+    present = next(iter(patch.cells.values())).plane_names if indices else ()
+    planes = _cell_planes(patch.metadata.n_noise, present)
     n_hdu = _FIRST_CELL_HDU + len(planes) * len(indices)
     meta = patch.metadata
     # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
@@ -314,7 +325,7 @@ def _write_cell(
         {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
         {"name": "CELL_Y", "value": cell.index[1], "comment": "tract-global cell index y"},
     ]
-    for plane in _cell_planes(cell.n_noise):
+    for plane in _cell_planes(cell.n_noise, cell.plane_names):
         name = extname(cell.index, plane)
         plane_keys: list[dict[str, Any]] = [*keys, {"name": "PLANE", "value": plane}]
         if plane == cell_planes.INPUTS:
@@ -503,10 +514,16 @@ class FitsCoaddFile(CoaddFile):
             )
         shapes = expected_shapes(self.metadata, identity["outer_bbox"])
         planes: dict[str, Any] = {}  # arrays, by CellCoadd field name
+        columns = row.dtype.names or ()
         for spec in cell_planes.PLANES:
-            number = int(row[hdu_column(spec.name)])
+            column = hdu_column(spec.name)
+            if spec.optional and column not in columns:  # a file before the plane
+                continue
+            number = int(row[column])
             if spec.per_realization and self.metadata.n_noise == 0 and number == -1:
                 planes[spec.name] = np.zeros(shapes[spec.name], dtype=spec.dtype)
+                continue
+            if spec.optional and number == -1:  # not stored: None
                 continue
             planes[spec.name] = self._read_plane(key, spec.name, number, shapes[spec.name])
         inputs = self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))

@@ -4,8 +4,10 @@ Root attributes identify the file (``cellcoadd_format``), its ``format_version``
 SHA-256 of the metadata JSON stored in the ``/metadata`` uint8 dataset. Each cell is a
 group ``/cells/<cx>_<cy>`` with one dataset per plane of
 :data:`~cellcoadd.model.planes.PLANES` (``image``, ``mask``, ``variance``, ``mfrac``,
-``noise`` (K, ny, nx), ``psf``), ``inputs`` (compound), and attributes ``cell`` (identity
-JSON: tract, index, boxes, exact WCS) and ``cell_sha256``.
+``noise`` (K, ny, nx), ``psf``, and ``psf_corners`` (4, n, n) when the cells have it),
+``inputs`` (compound), and attributes ``cell`` (identity JSON: tract, index, boxes, exact
+WCS) and ``cell_sha256``. The root attribute ``contents`` lists the objects every cell
+group holds, optional planes included when stored.
 
 Every non-empty dataset is chunked as a single chunk (one cell's plane) with a Fletcher-32
 checksum, plus shuffle + gzip with lossless compression. The file uses the HDF5 1.10 object
@@ -84,7 +86,9 @@ def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
         _PreparedCells(cells, compress) as prepared,
     ):
         # Fixed-length byte strings are stored inside the (checksummed) object header.
-        contents = contents_json(list(patch.cells)).encode("ascii")
+        # every cell of a patch holds the same planes (PatchCoadd checks it)
+        present = cells[0].plane_names if cells else cell_planes.required_plane_names()
+        contents = contents_json(list(patch.cells), present).encode("ascii")
         root = [
             ("cellcoadd_format", FILE_KIND),
             ("format_version", version),
@@ -173,7 +177,8 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
     inputs = [inputs_to_array(cell.inputs, ascii_only=False) for cell in batch]
     records = [cell_record_json(cell, cells.records).encode("ascii") for cell in batch]
     chunks: list[dict[str, memoryview]] = [{} for _ in batch]
-    for name in () if cells.compress else cell_planes.cell_objects():
+    present = batch[0].plane_names if batch else ()
+    for name in () if cells.compress else (*present, cell_planes.INPUTS):
         arrays = (
             inputs
             if name == cell_planes.INPUTS
@@ -194,13 +199,16 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
     return [_Prepared(*made) for made in zip(chunks, inputs, records, strict=True)]
 
 
-def contents_json(indices: list[tuple[int, int]]) -> str:
+def contents_json(indices: list[tuple[int, int]], planes: tuple[str, ...] | None = None) -> str:
     """ASCII JSON of the root attribute ``contents``: the cells' group names (sorted) and
-    the objects of each cell group."""
+    the objects of each cell group (the ``planes`` they hold, default every plane's but
+    the optional ones', and the inputs table)."""
+    if planes is None:
+        planes = cell_planes.required_plane_names()
     return json.dumps(
         {
             "cells": sorted(group_name(index) for index in indices),
-            "planes": sorted(cell_planes.cell_objects()),
+            "planes": sorted((*planes, cell_planes.INPUTS)),
         },
         separators=(",", ":"),
     )
@@ -233,6 +241,8 @@ def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> No
     members: list[Member] = []
     for spec in cell_planes.PLANES:
         plane = spec.name
+        if getattr(cell, plane) is None:  # an optional plane the cell lacks
+            continue
         # planes share shape and dtype: the name travels with the data so that a moved or
         # swapped dataset is refused rather than read as another plane
         attributes: list[Attribute] = [("plane", plane)]
@@ -264,14 +274,18 @@ class Hdf5CoaddFile(CoaddFile):
         with reading_errors(path, "cannot open the HDF5 file"):
             self._h5 = h5py.File(path, "r")
         try:
-            metadata, groups = self._read_header_part()
+            metadata, groups, objects = self._read_header_part()
         except BaseException:
             self._h5.close()
             raise
         self._groups = groups
+        self._objects = objects
         super().__init__(path, metadata, sorted(groups))
 
-    def _read_header_part(self) -> tuple[Any, dict[tuple[int, int], str]]:
+    def _read_header_part(
+        self,
+    ) -> tuple[Any, dict[tuple[int, int], str], frozenset[str]]:
+        """The metadata, the cell groups by index and the objects each group holds."""
         with reading_errors(self.path, "reading the root attributes"):
             kind = self._h5.attrs.get("cellcoadd_format")
             if isinstance(kind, bytes):
@@ -312,13 +326,16 @@ class Hdf5CoaddFile(CoaddFile):
                 if match is None:
                     raise DamagedDataError(f"unexpected group /cells/{name}", hdu=f"/cells/{name}")
                 groups[(int(match.group(1)), int(match.group(2)))] = name
+        objects = frozenset(cell_planes.cell_objects()) - _optional_planes()
         if file_version >= _CONTENTS_SINCE:
-            self._check_contents(payload, groups)
-        return metadata, groups
+            objects = self._check_contents(payload, groups)
+        return metadata, groups, objects
 
-    def _check_contents(self, payload: bytes, groups: dict[tuple[int, int], str]) -> None:
+    def _check_contents(self, payload: bytes, groups: dict[tuple[int, int], str]) -> frozenset[str]:
         """The cell groups must be exactly those of the root attribute ``contents``, whose
-        digest binds it to the metadata (a deleted or added cell group is refused)."""
+        digest binds it to the metadata (a deleted or added cell group is refused); returns
+        the objects it says each cell group holds (every plane but the optional ones not
+        stored, and the inputs)."""
         with reading_errors(self.path, "reading the list of cells"):
             if "contents" not in self._h5.attrs:
                 raise DamagedDataError("the root attribute 'contents' is missing")
@@ -328,7 +345,13 @@ class Hdf5CoaddFile(CoaddFile):
             cells, planes = listed["cells"], listed["planes"]
         if self.verify and digest != sha256_hex(payload + contents):
             raise CellCoaddFormatError(self.path, "SHA-256 of the list of cells mismatch")
-        if sorted(planes) != sorted(cell_planes.cell_objects()):
+        required = frozenset(cell_planes.cell_objects()) - _optional_planes()
+        if (
+            not isinstance(planes, list)
+            or not all(isinstance(name, str) for name in planes)
+            or len(set(planes)) != len(planes)
+            or not required <= set(planes) <= set(cell_planes.cell_objects())
+        ):
             raise CellCoaddFormatError(self.path, f"unexpected cell planes {planes}")
         found = set(groups.values())
         missing, extra = sorted(set(cells) - found), sorted(found - set(cells))
@@ -338,6 +361,7 @@ class Hdf5CoaddFile(CoaddFile):
                 f"the cell groups differ from the file's list of {len(cells)} cells "
                 f"(missing: {missing}, not listed: {extra})",
             )
+        return frozenset(planes)
 
     def _check_checksummed(self, dataset: h5py.Dataset) -> None:
         if self.verify and dataset.size > 0 and not dataset.fletcher32:
@@ -352,7 +376,7 @@ class Hdf5CoaddFile(CoaddFile):
             if not isinstance(group, h5py.Group):
                 raise DamagedDataError(f"{group.name} is not a group", hdu=group.name)
             _single_name(group)
-            _check_members(group, frozenset(cell_planes.cell_objects()), exact=True)
+            _check_members(group, self._objects, exact=True)
             return key, group
 
     def read_cell(self, index: tuple[int, int]) -> CellCoadd:
@@ -374,6 +398,8 @@ class Hdf5CoaddFile(CoaddFile):
         planes = {}
         for spec in cell_planes.PLANES:
             plane, dtype = spec.name, spec.stored_dtype
+            if plane not in self._objects:  # an optional plane not stored: None
+                continue
             with reading_errors(self.path, f"cell {key} plane {plane}"):
                 dataset = _plain_dataset(group, plane, self._size)
                 if dataset.shape != shapes[plane]:
@@ -420,6 +446,11 @@ class Hdf5CoaddFile(CoaddFile):
         if h5 is not None:
             h5.close()
             self._h5 = None
+
+
+def _optional_planes() -> frozenset[str]:
+    """Names of the optional planes (stored only when the cells have them)."""
+    return frozenset(spec.name for spec in cell_planes.PLANES if spec.optional)
 
 
 def _plain_link(group: h5py.Group, name: str) -> Any:
