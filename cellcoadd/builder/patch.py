@@ -542,12 +542,16 @@ def _built_blocks(
         elif pool is None:
             for block, candidates in tasks:
                 built = run(block, candidates)
+                coadds = [_unparcel(c, b) for c, b in zip(block, built, strict=True)]
+                del built
                 bar.update(len(block))
-                yield [_unparcel(cell, coadd) for cell, coadd in zip(block, built, strict=True)]
+                yield coadds
+                del coadds  # handed on: not held while the next block is built
         else:
-            for (block, _), built in zip(tasks, _run_on(pool, tasks, run), strict=False):
+            for (block, _), coadds in zip(tasks, _run_on(pool, tasks, run), strict=False):
                 bar.update(len(block))
-                yield built
+                yield coadds
+                del coadds
     finally:
         bar.close()
         if release is not None:
