@@ -15,8 +15,15 @@ tasks carry references to them. Inputs given as exposure sources
 which cells they serve is decided from their headers, and each worker loads the pixels
 it needs, one exposure cut to one block at a time, so memory does not grow with the
 number of exposures and no pixel crosses a process boundary except finished cells. A
-failing cell stops the build with an error naming the cell and carrying the worker's
-traceback.
+finished cell travels back without its WCS (the receiving process makes it from its own
+geometry: unpickling an astropy WCS costs ~2 ms, remaking it 0.04 ms).
+
+:func:`stream_patch` gives the cells as their blocks are done, in the order of the patch
+files (sorted ``(cx, cy)``: blocks are bands of whole columns), with the patch's metadata
+known before any cell, so a writer stores each block and lets it go: the building process
+holds a few blocks, not the patch (:func:`build_patch` collects them into a
+:class:`~cellcoadd.model.patch_coadd.PatchCoadd`). A failing cell stops the build with an
+error naming the cell and carrying the worker's traceback.
 """
 
 from __future__ import annotations
@@ -24,13 +31,14 @@ from __future__ import annotations
 import contextlib
 import functools
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import (
+    FIRST_COMPLETED,
     BrokenExecutor,
     Executor,
     Future,
     ProcessPoolExecutor,
-    as_completed,
+    wait,
 )
 from typing import Any
 
@@ -40,8 +48,8 @@ from cellcoadd._version import __version__
 from cellcoadd.builder.cell import CellBlock
 from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
-from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
-from cellcoadd.builder.psf import warn_truncated_psfs
+from cellcoadd.builder.inputs import BuildInput, BuildSettings, PreparedBuild, prepare
+from cellcoadd.builder.psf import PsfLoss, psf_loss, warn_psf_losses
 from cellcoadd.errors import CellBuildError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
@@ -50,9 +58,13 @@ from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
 from cellcoadd.model.sources import DescribedSource, ExposureSource
 
-#: Largest block of cells built together (per side): bounds a block's memory, e.g. 64
-#: cells of 250 x 250 px with 3 noise realizations hold ~190 MB of float64 sums.
-MAX_BLOCK_SIDE = 8
+#: Most cells built together in one block: bounds a block's memory, e.g. 64 cells of
+#: 250 x 250 px with 3 noise realizations hold ~190 MB of float64 sums.
+MAX_BLOCK_CELLS = 64
+#: Blocks submitted to a pool and not yet handed on, per worker: bounds the finished cells
+#: the building process holds (one block running in each worker, one waiting, and those
+#: done out of order).
+WINDOW_PER_WORKER = 2
 
 # The inputs of the build and their frames, installed once in each process of a pool this
 # module creates (its initializer), so that block tasks carry input indices instead of
@@ -67,45 +79,86 @@ def _install_inputs(inputs: list[tuple[BuildInput, ExposureFrame | None]]) -> No
 #: One task: the cells of a block and their candidate inputs (with their frames), or the
 #: indices of those in the pool's table.
 Task = tuple[list[Cell], Sequence[tuple[BuildInput, ExposureFrame | None] | int]]
-#: What runs one task: its cells and candidates in, their coadds out.
-Runner = Callable[[list[Cell], Sequence[Any]], list[CellCoadd]]
+#: A built cell on its way back from a worker: its :class:`CellCoadd` fields but the WCS.
+Parcel = dict[str, Any]
+#: What runs one task: its cells and candidates in, their coadds (or parcels) out.
+Runner = Callable[[list[Cell], Sequence[Any]], list[Any]]
 
 
 def _build_block(
     settings: BuildSettings,
     cells: list[Cell],
     candidates: Sequence[tuple[BuildInput, ExposureFrame | None] | int],
-) -> list[CellCoadd]:
-    """Build the cells of one block from their candidate inputs (or indices of them)."""
+    *,
+    parcels: bool = False,
+) -> list[Any]:
+    """Build the cells of one block from their candidate inputs (or indices of them); as
+    parcels (:func:`_parcel`) to send them to another process."""
     block = None
     try:
         block = CellBlock(cells, settings)
         for candidate in candidates:
             item, frame = _pool_inputs[candidate] if isinstance(candidate, int) else candidate
             block.add(item, frame)
-        return block.finish()
+        built = block.finish()
+        return [_parcel(coadd) for coadd in built] if parcels else built
     except Exception as err:
         # the traceback text travels with the error across process boundaries
         cell = block.current if block is not None else cells[0]
         raise _cell_failed(cell, err, "\n" + traceback.format_exc()) from None
 
 
+def _parcel(coadd: CellCoadd) -> Parcel:
+    """The fields of ``coadd`` but its WCS (see :func:`_unparcel`)."""
+    return {
+        "image": coadd.image,
+        "mask": coadd.mask,
+        "variance": coadd.variance,
+        "noise": coadd.noise,
+        "mfrac": coadd.mfrac,
+        "psf": coadd.psf,
+        "inputs": coadd.inputs,
+        "tract": coadd.tract,
+        "index": coadd.index,
+        "inner_bbox": coadd.inner_bbox,
+        "outer_bbox": coadd.outer_bbox,
+    }
+
+
+def _unparcel(cell: Cell, built: CellCoadd | Parcel) -> CellCoadd:
+    """The coadd of ``cell`` from what its block returned: the coadd itself, or a parcel
+    given the cell's WCS, made here from its geometry as the builder makes it."""
+    if isinstance(built, CellCoadd):
+        return built
+    return CellCoadd(**built, wcs=cell.wcs)
+
+
 def blocks_of(cells: Sequence[Cell], n_tasks: int) -> list[list[Cell]]:
-    """Blocks of neighbouring cells: bands of whole rows (at most :data:`MAX_BLOCK_SIDE`
-    cells on a side), about ``n_tasks`` of them when there are enough rows; cells in
-    row-major order within a block, blocks in row-major order."""
-    if not cells:
+    """Blocks of neighbouring cells in file order: bands of whole columns, cells sorted by
+    ``(cx, cy)``, so the blocks one after the other list the cells in sorted order.
+
+    A band has as many columns as fit in :data:`MAX_BLOCK_CELLS` cells, fewer to make
+    about ``n_tasks`` bands when there are enough columns; a column taller than that is
+    cut into pieces of at most :data:`MAX_BLOCK_CELLS` cells.
+    """
+    columns: dict[int, list[Cell]] = {}
+    for cell in sorted(cells, key=lambda c: c.index):
+        columns.setdefault(cell.index[0], []).append(cell)
+    if not columns:
         return []
-    xs = sorted({cell.index[0] for cell in cells})
-    ys = sorted({cell.index[1] for cell in cells})
-    side_x = min(len(xs), MAX_BLOCK_SIDE)
-    per_band = -(-len(xs) // side_x)
-    side_y = min(MAX_BLOCK_SIDE, max(1, -(-len(ys) * per_band // max(1, n_tasks))))
-    groups: dict[tuple[int, int], list[Cell]] = {}
-    for cell in sorted(cells, key=lambda c: (c.index[1], c.index[0])):
-        key = ((cell.index[1] - ys[0]) // side_y, (cell.index[0] - xs[0]) // side_x)
-        groups.setdefault(key, []).append(cell)
-    return [groups[key] for key in sorted(groups)]
+    tallest = max(len(column) for column in columns.values())
+    if tallest > MAX_BLOCK_CELLS:
+        return [
+            column[start : start + MAX_BLOCK_CELLS]
+            for column in columns.values()
+            for start in range(0, len(column), MAX_BLOCK_CELLS)
+        ]
+    bands = list(columns.values())
+    width = max(1, min(MAX_BLOCK_CELLS // tallest, -(-len(bands) // max(1, n_tasks))))
+    return [
+        [cell for column in bands[start : start + width] for cell in column]
+        for start in range(0, len(bands), width)
+    ]
 
 
 def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuildError:
@@ -116,42 +169,62 @@ def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuild
 
 
 def _collect(
-    cells: list[Cell], built: list[CellCoadd], results: dict[tuple[int, int], CellCoadd]
+    cells: list[Cell], built: list[Any], results: dict[tuple[int, int], CellCoadd]
 ) -> None:
     for cell, coadd in zip(cells, built, strict=True):
-        results[cell.index] = coadd
+        results[cell.index] = _unparcel(cell, coadd)
 
 
-def _run_on(
-    pool: Executor,
-    tasks: Sequence[Task],
-    run: Runner,
-    results: dict[tuple[int, int], CellCoadd],
-    bar: tqdm,
-) -> None:
-    """Build the blocks of ``tasks`` with ``run`` on ``pool`` into ``results``; on the first
+def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Iterator[list[CellCoadd]]:
+    """Build the blocks of ``tasks`` with ``run`` on ``pool``; yield their coadds block by
+    block in the order of ``tasks``. At most ``WINDOW_PER_WORKER`` blocks per worker are
+    submitted and not yet yielded, so finished cells do not pile up here. On the first
     failure, cancel what has not started and raise a CellBuildError naming the cell."""
-    submitted: list[tuple[Future, list[Cell]]] = [
-        (pool.submit(run, cells, candidates), cells) for cells, candidates in tasks
-    ]
-    blocks = dict(submitted)
+    workers = max(1, int(getattr(pool, "_max_workers", 1)))
+    window = WINDOW_PER_WORKER * workers
+    submitted: list[tuple[Future, list[Cell]]] = []
+    done: dict[int, list[CellCoadd]] = {}  # finished blocks waiting for earlier ones
+    numbers: dict[Future, int] = {}
+    yielded = 0
     try:
-        for future in as_completed(blocks):
-            cells = blocks[future]
-            try:
-                _collect(cells, future.result(), results)
-            except CellBuildError:
-                raise
-            except BrokenExecutor as err:
-                workers = int(getattr(pool, "_max_workers", 1))
-                raise CellBuildError(_died_message(submitted, err, workers)) from err
-            except Exception as err:  # e.g. a result that could not be sent back
-                raise _cell_failed(cells[0], err) from err
-            bar.update(len(cells))
+        while yielded < len(tasks):
+            while len(submitted) < len(tasks) and len(submitted) - yielded < window:
+                cells, candidates = tasks[len(submitted)]
+                try:
+                    future = pool.submit(run, cells, candidates)
+                except BrokenExecutor as err:  # a worker died since the last submission
+                    raise CellBuildError(_died_message(submitted, err, workers)) from err
+                numbers[future] = len(submitted)
+                submitted.append((future, cells))
+            if yielded not in done:
+                finished, _ = wait(list(numbers), return_when=FIRST_COMPLETED)
+                for future in sorted(finished, key=numbers.__getitem__):
+                    number = numbers.pop(future)
+                    done[number] = _received(future, submitted, number, workers)
+                continue
+            yield done.pop(yielded)
+            yielded += 1
     except BaseException:
         for future, _ in submitted:
             future.cancel()
         raise
+
+
+def _received(
+    future: Future, submitted: list[tuple[Future, list[Cell]]], number: int, workers: int
+) -> list[CellCoadd]:
+    """The coadds of finished block ``number``, or the CellBuildError naming its cell."""
+    cells = submitted[number][1]
+    try:
+        results: dict[tuple[int, int], CellCoadd] = {}
+        _collect(cells, future.result(), results)
+        return list(results.values())
+    except CellBuildError:
+        raise
+    except BrokenExecutor as err:
+        raise CellBuildError(_died_message(submitted, err, workers)) from err
+    except Exception as err:  # e.g. a result that could not be sent back
+        raise _cell_failed(cells[0], err) from err
 
 
 def _run_on_dask(
@@ -314,6 +387,48 @@ def build_patch(
     configuration of the worker machines (or ``MALLOC_MMAP_THRESHOLD_=33554432`` in the
     environment of ``dask worker``). Results are identical either way.
     """
+    stream = stream_patch(
+        patch,
+        exposures,
+        config,
+        seed,
+        executor,
+        progress,
+        workers=workers,
+        scheduler=scheduler,
+    )
+    with stream:
+        cells = {coadd.index: coadd for coadd in stream}
+    return PatchCoadd(metadata=stream.metadata, cells=cells)
+
+
+def stream_patch(
+    patch: Patch,
+    exposures: Sequence[Exposure | ExposureSource | DescribedSource],
+    config: BuildConfig | None = None,
+    seed: int = 0,
+    executor: Executor | None = None,
+    progress: bool = True,
+    *,
+    workers: int = 1,
+    scheduler: object | None = None,
+) -> PatchStream:
+    """The cells of ``patch`` built from ``exposures``, given one by one as they are done.
+
+    The parameters, the set-up (inputs checked, headers read, exposures mapped) and the
+    errors are those of :func:`build_patch`, whose cells are the same bit for bit; the
+    set-up happens here, the building while the result is iterated.
+
+    Returns
+    -------
+    PatchStream
+        Its ``metadata`` (known before any cell) and ``indices``; iterating it builds the
+        cells and yields them in sorted ``(cx, cy)`` order, the order of the patch files,
+        block after block: on a process pool at most
+        ``WINDOW_PER_WORKER * workers`` blocks (of at most :data:`MAX_BLOCK_CELLS` cells)
+        are held here at once, on dask the whole patch. Use it as a context manager (or
+        call ``close``): leaving it stops the workers.
+    """
     config = config or BuildConfig()
     cells = patch.cells
     build = prepare(
@@ -321,6 +436,80 @@ def build_patch(
     )
     band = build.settings.band
     assert band is not None  # one_band
+    metadata = PatchMetadata(
+        skymap_config=patch.config,
+        tract=patch.tract.id,
+        tract_center=patch.tract.center,
+        patch=patch.index,
+        band=band,
+        units=config.units,
+        zero_point=config.zero_point,
+        mask_bits=build.settings.mask_bits,
+        build_config=build.settings.config,  # psf_size resolved
+        software_version=__version__,
+        format_version=FORMAT_VERSION,
+    )
+    blocks = _built_blocks(patch, build, executor, progress, workers, scheduler)
+    return PatchStream(metadata, sorted(cell.index for cell in cells), blocks)
+
+
+class PatchStream:
+    """The cells of a patch as they are built (see :func:`stream_patch`).
+
+    Attributes
+    ----------
+    metadata : PatchMetadata
+        The patch's metadata, as :func:`build_patch` gives it.
+    indices : list of (int, int)
+        The cells that will come, in the order they come (sorted).
+    """
+
+    def __init__(
+        self,
+        metadata: PatchMetadata,
+        indices: list[tuple[int, int]],
+        blocks: Iterator[list[CellCoadd]],
+    ) -> None:
+        self.metadata = metadata
+        self.indices = indices
+        self._blocks = blocks
+        self._started = False
+
+    def __iter__(self) -> Iterator[CellCoadd]:
+        if self._started:
+            raise CellBuildError(f"the cells of patch {self.metadata.patch} were already given")
+        self._started = True
+        losses: list[PsfLoss] = []
+        for block in self._blocks:
+            for coadd in block:
+                losses += psf_loss(coadd)
+            yield from block
+            del block  # handed on: the last reference here
+        warn_psf_losses(losses)  # here: warnings in worker processes are lost
+
+    def close(self) -> None:
+        """Stop building (cancel the blocks not started, shut down a pool made here)."""
+        close = getattr(self._blocks, "close", None)
+        if close is not None:
+            close()
+
+    def __enter__(self) -> PatchStream:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def _built_blocks(
+    patch: Patch,
+    build: PreparedBuild,
+    executor: Executor | None,
+    progress: bool,
+    workers: int,
+    scheduler: object | None,
+) -> Iterator[list[CellCoadd]]:
+    """Build the blocks of ``patch`` (see :func:`stream_patch`); yield them in file order."""
+    cells = patch.cells
     # each exposure mapped once onto the patch, from its header: shared by every block
     framed = [(item, frame) for item, frame in zip(build.inputs, build.frames, strict=True)]
     client = pool = None
@@ -340,35 +529,30 @@ def build_patch(
         tasks.append(
             (block, indices if owned or client is not None else [framed[i] for i in indices])
         )
-    run = functools.partial(_build_block, build.settings)
-    results: dict[tuple[int, int], CellCoadd] = {}
+    # a block built elsewhere comes back as parcels: no WCS to unpickle
+    elsewhere = pool is not None or client is not None
+    run = functools.partial(_build_block, build.settings, parcels=elsewhere)
     bar = tqdm(total=len(cells), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if client is not None:
+            results: dict[tuple[int, int], CellCoadd] = {}
             _run_on_dask(client, tasks, framed, run, results, bar)
+            for block, _ in tasks:
+                yield [results.pop(cell.index) for cell in block]
         elif pool is None:
             for block, candidates in tasks:
-                _collect(block, run(block, candidates), results)
+                built = run(block, candidates)
+                coadds = [_unparcel(c, b) for c, b in zip(block, built, strict=True)]
+                del built
                 bar.update(len(block))
+                yield coadds
+                del coadds  # handed on: not held while the next block is built
         else:
-            _run_on(pool, tasks, run, results, bar)
+            for (block, _), coadds in zip(tasks, _run_on(pool, tasks, run), strict=False):
+                bar.update(len(block))
+                yield coadds
+                del coadds
     finally:
         bar.close()
         if release is not None:
             release()
-    metadata = PatchMetadata(
-        skymap_config=patch.config,
-        tract=patch.tract.id,
-        tract_center=patch.tract.center,
-        patch=patch.index,
-        band=band,
-        units=config.units,
-        zero_point=config.zero_point,
-        mask_bits=build.settings.mask_bits,
-        build_config=build.settings.config,  # psf_size resolved
-        software_version=__version__,
-        format_version=FORMAT_VERSION,
-    )
-    ordered = {cell.index: results[cell.index] for cell in cells}
-    warn_truncated_psfs(ordered.values())  # here: warnings in worker processes are lost
-    return PatchCoadd(metadata=metadata, cells=ordered)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from typing import NamedTuple
 
 import galsim
 import numpy as np
@@ -110,22 +111,46 @@ def psf_moments(stamp: np.ndarray, jacobian: np.ndarray) -> dict[str, float]:
     }
 
 
+class PsfLoss(NamedTuple):
+    """A cell whose PSF stamp leaves out flux: the fraction, the cell, its stamp side."""
+
+    flux_outside: float
+    cell: tuple[int, int]
+    tract: int
+    size: int
+
+
+def psf_loss(coadd: CellCoadd, limit: float = PSF_FLUX_OUTSIDE_LIMIT) -> list[PsfLoss]:
+    """``[PsfLoss]`` when ``coadd``'s PSF stamp leaves out more than ``limit`` of the PSF's
+    flux (:attr:`CellCoadd.psf_flux_outside`), else ``[]``."""
+    outside = coadd.psf_flux_outside
+    if not outside > limit:
+        return []
+    return [PsfLoss(outside, coadd.index, coadd.tract, coadd.psf.shape[0])]
+
+
 def warn_truncated_psfs(coadds: Iterable[CellCoadd], limit: float = PSF_FLUX_OUTSIDE_LIMIT) -> None:
     """Warn (:class:`~cellcoadd.errors.PsfStampWarning`, once for all ``coadds``) when
     cells' PSF stamps leave out more than ``limit`` of the PSF's flux
     (:attr:`CellCoadd.psf_flux_outside`), naming the worst cell."""
-    lost = [(c.psf_flux_outside, c) for c in coadds if c.psf_flux_outside > limit]
-    if not lost:
+    warn_psf_losses([loss for c in coadds for loss in psf_loss(c, limit)], limit, stacklevel=4)
+
+
+def warn_psf_losses(
+    losses: Sequence[PsfLoss], limit: float = PSF_FLUX_OUTSIDE_LIMIT, *, stacklevel: int = 3
+) -> None:
+    """The warning of :func:`warn_truncated_psfs` for the ``losses`` found in its cells
+    (none: no warning)."""
+    if not losses:
         return
-    worst, cell = max(lost, key=lambda item: item[0])
-    size = cell.psf.shape[0]
+    worst = max(losses, key=lambda loss: loss.flux_outside)
     warnings.warn(
         PsfStampWarning(
-            f"{len(lost)} cell(s) lose more than {limit:g} of the PSF's flux outside the "
-            f"{size}-pixel PSF stamp, up to {worst:.2e} in cell {cell.index} of tract "
-            f"{cell.tract}; the stamps are renormalised to unit sum, which changes the PSF's "
-            "size: a larger BuildConfig.psf_size keeps more (psf_flux_outside is recorded "
-            "per input)"
+            f"{len(losses)} cell(s) lose more than {limit:g} of the PSF's flux outside the "
+            f"{worst.size}-pixel PSF stamp, up to {worst.flux_outside:.2e} in cell "
+            f"{worst.cell} of tract {worst.tract}; the stamps are renormalised to unit sum, "
+            "which changes the PSF's size: a larger BuildConfig.psf_size keeps more "
+            "(psf_flux_outside is recorded per input)"
         ),
-        stacklevel=3,
+        stacklevel=stacklevel,
     )

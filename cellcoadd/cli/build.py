@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import click
 
@@ -77,8 +78,8 @@ def build(
     """
     from tqdm.auto import tqdm
 
-    from cellcoadd.builder import build_patch
-    from cellcoadd.io.api import write
+    from cellcoadd.builder import stream_patch
+    from cellcoadd.io.api import write_cells
     from cellcoadd.io.exposures.exposure_source import ExposureFile
     from cellcoadd.io.exposures.manifest_io import (
         read_build_config,
@@ -87,7 +88,7 @@ def build(
     )
     from cellcoadd.model.build_config import BuildConfig
     from cellcoadd.model.sources import describe
-    from cellcoadd.pipelines.coverage import coverage_warning
+    from cellcoadd.pipelines.coverage import count_cell_inputs, counts_warning
 
     if not exposure_files and manifest is None:
         raise click.UsageError("give EXPOSURE_FILES or --manifest")
@@ -106,21 +107,38 @@ def build(
     check_output_not_an_input(out, [p for group in given for p in _as_list(group)])
     # headers read once, now: a missing HDU or keyword is found before the build
     inputs = [describe(s) for s in tqdm(sources, desc="headers", unit="file", disable=quiet)]
-    coadd = build_patch(
+    # each block of cells written as it is built, then let go: the patch is never held whole
+    stream = stream_patch(
         patch, inputs, config, seed, progress=not quiet, workers=workers, scheduler=scheduler
     )
-    write(
-        coadd, out, compression=None if compression == "none" else "lossless", overwrite=overwrite
-    )
-    used = sum(r.status == "used" for c in coadd.cells.values() for r in c.inputs)
-    empty = sum(c.is_empty for c in coadd.cells.values())
+    kept: list[_CellInputs] = []  # what the summary needs of each cell
+
+    def cells() -> Iterator[Any]:
+        for cell in stream:
+            kept.append(_CellInputs(cell.inputs, cell.is_empty))
+            yield cell
+
+    with stream:
+        write_cells(
+            stream.metadata,
+            cells(),
+            out,
+            compression=None if compression == "none" else "lossless",
+            overwrite=overwrite,
+        )
+    counts = count_cell_inputs(kept)
     click.echo(
-        f"wrote {out}: {len(coadd.cells)} cells ({empty} empty), {used} input records used, "
-        f"{time.perf_counter() - start:.1f} s"
+        f"wrote {out}: {counts.n_cells} cells ({counts.n_empty} empty), "
+        f"{counts.records['used']} input records used, {time.perf_counter() - start:.1f} s"
     )
-    warning = coverage_warning(coadd)
+    warning = counts_warning(counts, stream.metadata.skymap_config)
     if warning:
         click.echo(warning, err=True)
+
+
+class _CellInputs(NamedTuple):
+    inputs: list[Any]
+    is_empty: bool
 
 
 def _as_list(group: Any) -> list[str]:

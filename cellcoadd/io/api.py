@@ -22,10 +22,12 @@ cellcoadd file of a supported major version.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
+
+import numpy as np
 
 from cellcoadd.errors import (
     CellCoaddIncompatibleValuesError,
@@ -40,15 +42,21 @@ from cellcoadd.io._files.read_checks import reading_errors
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import stabilise_fits_checksums
 from cellcoadd.io.coadd.coadd_file import CoaddFile
-from cellcoadd.io.coadd.fits_format import FitsCoaddFile, check_fits_path, write_fits
-from cellcoadd.io.coadd.hdf5_format import Hdf5CoaddFile, write_hdf5
+from cellcoadd.io.coadd.fits_format import (
+    FitsCoaddFile,
+    check_fits_path,
+    write_fits,
+    write_fits_cells,
+)
+from cellcoadd.io.coadd.hdf5_format import Hdf5CoaddFile, write_hdf5, write_hdf5_cells
 from cellcoadd.io.foreign.cell_coadds_layout import (
     check_writable as check_cell_coadds_writable,
 )
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file, write_cell_coadds
 from cellcoadd.io.foreign.cell_coadds_reader import CellCoaddsFile
+from cellcoadd.model import planes
 from cellcoadd.model.cell_coadd import CellCoadd
-from cellcoadd.model.patch_coadd import PatchCoadd
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata, check_patch_cell
 
 Compression = Literal["none", "lossless"]
 FileFormat = Literal["fits", "hdf5"]
@@ -173,6 +181,76 @@ def write(
     )
 
 
+def write_cells(
+    metadata: PatchMetadata,
+    cells: Iterable[CellCoadd],
+    path: str | os.PathLike[str],
+    *,
+    compression: Compression | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a patch coadd given as its metadata and its cells, taking the cells as they come.
+
+    The file is byte for byte the one :func:`write` makes of
+    ``PatchCoadd(metadata, cells)``, but each cell is written and let go before the next
+    is taken (a few are held at once), so a patch is written while it is built (e.g.
+    :func:`cellcoadd.builder.stream_patch`) without being held whole. Options, atomicity
+    and errors are those of :func:`write` (our own layouts only).
+
+    Parameters
+    ----------
+    metadata : PatchMetadata
+        The patch's metadata.
+    cells : iterable of CellCoadd
+        Every cell of the patch (:attr:`PatchMetadata.all_cell_indices`), in sorted
+        ``(cx, cy)`` order, each as :class:`~cellcoadd.model.patch_coadd.PatchCoadd` checks
+        its cells and with the geometry of the sky map (boxes and WCS).
+
+    Raises
+    ------
+    InvalidCoaddError
+        A cell is invalid, out of order, missing or extra; nothing is left at ``path``.
+    """
+    target = Path(os.fspath(path))
+    file_kind = file_format(target)
+    compress = _use_compression(str(target), compression)
+    geometry = metadata.geometry
+    indices = sorted(metadata.all_cell_indices)
+    allowed = set(indices)
+    present = metadata.cell_plane_names  # as built: every cell holds these planes
+
+    def checked() -> Iterator[CellCoadd]:
+        for cell in cells:
+            check_patch_cell(metadata, cell.index, cell, allowed)
+            yield cell
+            del cell  # written: not held here while the next one comes
+
+    def prepare(temporary: Path) -> None:
+        if file_kind == "fits":
+            check_fits_path(str(temporary))
+        check_free_space(target, _estimated_cells_size(metadata, len(indices)))
+
+    def write_file(temporary: Path) -> None:
+        if file_kind == "fits":
+            identities = [geometry.tract.cell(*index) for index in indices]
+            write_fits_cells(
+                metadata, identities, checked(), str(temporary), compress=compress,
+                present=present,
+            )  # fmt: skip
+        else:
+            write_hdf5_cells(
+                metadata, indices, checked(), str(temporary), compress=compress, present=present
+            )
+
+    return atomic_write(
+        target,
+        write_file,
+        overwrite=overwrite,
+        prepare=prepare,
+        on_failure=clear_cfitsio_messages if file_kind == "fits" else None,
+    )
+
+
 def _foreign_writer(
     target: Path, file_kind: FileFormat, layout: str, compress: bool
 ) -> Callable[..., None]:
@@ -212,6 +290,22 @@ def _estimated_size(patch_coadd: PatchCoadd) -> int:
         total += (len(held) + 1) * per_plane  # the planes and the inputs table
         total += 128 * len(cell.inputs) + 4096  # inputs table rows, identity JSON
     return total
+
+
+def _estimated_cells_size(metadata: PatchMetadata, n_cells: int) -> int:
+    """Upper estimate (bytes) of the uncompressed file of ``n_cells`` cells of ``metadata``
+    (as :func:`_estimated_size`, with room for 64 input records per cell)."""
+    per_plane = 2 * 2880 + 2880
+    total = 8 * 2880 + len(metadata.model_dump_json())
+    config = metadata.skymap_config
+    side = config.cell_inner + 2 * config.cell_border
+    pixels = sum(
+        int(np.prod(spec.shape((side, side), metadata.n_noise, metadata.psf_size)))
+        * spec.dtype.itemsize
+        for spec in planes.PLANES
+    )
+    per_cell = pixels + len(planes.cell_objects()) * per_plane + 128 * 64 + 4096
+    return total + n_cells * per_cell
 
 
 def open(

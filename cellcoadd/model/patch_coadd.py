@@ -291,6 +291,15 @@ class PatchMetadata(BaseModel):
         return self.build_config.n_noise
 
     @property
+    def cell_plane_names(self) -> tuple[str, ...]:
+        """Names of the planes its build gives each cell, in storage order: the required
+        ones, and ``psf_corners`` when ``build_config.psf_corners`` asks for it."""
+        wanted = {"psf_corners": self.build_config.psf_corners}
+        return tuple(
+            spec.name for spec in cell_planes.PLANES if not spec.optional or wanted[spec.name]
+        )
+
+    @property
     def psf_size(self) -> int:
         """Side of the PSF stamp, pixels (from ``build_config``; when it leaves the size out,
         the size a build uses for these cells, :meth:`BuildConfig.resolved`)."""
@@ -349,6 +358,60 @@ class PatchMetadata(BaseModel):
         return cell.inner_bbox, cell.outer_bbox
 
 
+def check_patch_cell(
+    metadata: PatchMetadata,
+    key: tuple[int, int],
+    cell: object,
+    allowed: set[tuple[int, int]] | None = None,
+) -> None:
+    """Refuse (InvalidCoaddError) ``cell`` as the cell ``key`` of the patch of ``metadata``
+    unless it is a :class:`CellCoadd` of that index, one of the patch's cells (``allowed``:
+    :attr:`PatchMetadata.all_cell_indices`, computed when not given), in its tract, with the
+    boxes implied by the sky map, ``n_noise`` realizations, a ``psf_size`` stamp and only
+    named mask bits; an empty cell must have ``NO_DATA`` in every mask pixel."""
+    if not isinstance(cell, CellCoadd):
+        raise InvalidCoaddError(f"cell {key}: expected a CellCoadd, got {type(cell).__name__}")
+    if cell.index != key:
+        raise InvalidCoaddError(f"cell stored under {key} has index {cell.index}")
+    if key not in (set(metadata.all_cell_indices) if allowed is None else allowed):
+        raise InvalidCoaddError(
+            f"cell {key} is not an inner or border cell of patch {metadata.patch}"
+        )
+    if cell.tract != metadata.tract:
+        raise InvalidCoaddError(f"cell {key} is in tract {cell.tract}, not {metadata.tract}")
+    inner, outer = metadata.cell_boxes(key)
+    if (cell.inner_bbox, cell.outer_bbox) != (inner, outer):
+        raise InvalidCoaddError(
+            f"cell {key} has boxes inner={cell.inner_bbox}, outer={cell.outer_bbox}; "
+            f"the sky map implies inner={inner}, outer={outer}"
+        )
+    if cell.n_noise != metadata.n_noise:
+        raise InvalidCoaddError(
+            f"cell {key} has {cell.n_noise} noise realizations, "
+            f"the build config says {metadata.n_noise}"
+        )
+    if cell.psf.shape != (metadata.psf_size, metadata.psf_size):
+        raise InvalidCoaddError(
+            f"cell {key} has a {cell.psf.shape} PSF stamp, expected side {metadata.psf_size}"
+        )
+    unknown = metadata.mask_bits.unknown_bits(cell.mask)
+    if unknown:
+        raise InvalidCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
+    no_data = metadata.mask_bits.value("NO_DATA")
+    if cell.is_empty and not np.all(cell.mask & no_data):
+        raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
+
+
+def check_planes(cell: CellCoadd, present: tuple[str, ...]) -> None:
+    """Refuse (InvalidCoaddError) ``cell`` unless it holds exactly the planes ``present``
+    (:attr:`CellCoadd.plane_names`): all the cells of a patch hold the same planes."""
+    if cell.plane_names != tuple(present):
+        raise InvalidCoaddError(
+            f"cell {cell.index} holds the planes {list(cell.plane_names)}, the patch's cells "
+            f"{list(present)}: all the cells of a patch hold the same planes"
+        )
+
+
 class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
     """The cells (inner and border) of one patch, read-only mapping ``(cx, cy) -> CellCoadd``.
 
@@ -379,41 +442,11 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
             )
         self.metadata = metadata
         allowed = set(metadata.all_cell_indices)
-        no_data = metadata.mask_bits.value("NO_DATA")
         checked: dict[tuple[int, int], CellCoadd] = {}
         first_corners: np.ndarray | None = None
         for key, cell in cells.items():
             key = (int(key[0]), int(key[1]))
-            if not isinstance(cell, CellCoadd):
-                raise InvalidCoaddError(
-                    f"cell {key}: expected a CellCoadd, got {type(cell).__name__}"
-                )
-            if cell.index != key:
-                raise InvalidCoaddError(f"cell stored under {key} has index {cell.index}")
-            if key not in allowed:
-                raise InvalidCoaddError(
-                    f"cell {key} is not an inner or border cell of patch {metadata.patch}"
-                )
-            if cell.tract != metadata.tract:
-                raise InvalidCoaddError(
-                    f"cell {key} is in tract {cell.tract}, not {metadata.tract}"
-                )
-            inner, outer = metadata.cell_boxes(key)
-            if (cell.inner_bbox, cell.outer_bbox) != (inner, outer):
-                raise InvalidCoaddError(
-                    f"cell {key} has boxes inner={cell.inner_bbox}, outer={cell.outer_bbox}; "
-                    f"the sky map implies inner={inner}, outer={outer}"
-                )
-            if cell.n_noise != metadata.n_noise:
-                raise InvalidCoaddError(
-                    f"cell {key} has {cell.n_noise} noise realizations, "
-                    f"the build config says {metadata.n_noise}"
-                )
-            if cell.psf.shape != (metadata.psf_size, metadata.psf_size):
-                raise InvalidCoaddError(
-                    f"cell {key} has a {cell.psf.shape} PSF stamp, expected side "
-                    f"{metadata.psf_size}"
-                )
+            check_patch_cell(metadata, key, cell, allowed)
             if checked and (cell.psf_corners is None) != (first_corners is None):
                 raise InvalidCoaddError(
                     f"cell {key} {'lacks' if cell.psf_corners is None else 'has'} psf_corners "
@@ -422,11 +455,6 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
                     "a patch have them or none does"
                 )
             first_corners = cell.psf_corners if not checked else first_corners
-            unknown = metadata.mask_bits.unknown_bits(cell.mask)
-            if unknown:
-                raise InvalidCoaddError(f"cell {key}: mask has bits {unknown:#x} with no name")
-            if cell.is_empty and not np.all(cell.mask & no_data):
-                raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
             checked[key] = cell
         common = metadata.cell_common
         for key, cell in checked.items():  # a cell taken from the patch describes itself

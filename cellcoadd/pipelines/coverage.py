@@ -15,10 +15,14 @@ Vocabulary (the same in ``cellcoadd demo``, ``cellcoadd info`` and ``cellcoadd b
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
+from cellcoadd.geometry.config import SkyMapConfig
+from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd
 
 #: warn when more than this fraction of the cells is empty ...
@@ -77,14 +81,31 @@ class InputCounts:
         ]
 
 
+class CellInputs(Protocol):
+    """What counting needs of a cell (a CellCoadd has it)."""
+
+    @property
+    def inputs(self) -> list[InputRecord]: ...
+
+    @property
+    def is_empty(self) -> bool: ...
+
+
 def count_inputs(coadd: PatchCoadd) -> InputCounts:
     """Count the input records and the visits of every cell of ``coadd``."""
+    return count_cell_inputs(coadd.cells.values())
+
+
+def count_cell_inputs(cells: Iterable[CellInputs]) -> InputCounts:
+    """Count the input records and the visits of ``cells`` (see :func:`count_inputs`)."""
     records: Counter = Counter()
     visits: Counter = Counter()
     per_cell = []
     all_visits: set[int] = set()
     n_empty = 0
-    for cell in coadd.cells.values():
+    n_cells = 0
+    for cell in cells:
+        n_cells += 1
         by_visit: dict[int, set[str]] = {}
         for record in cell.inputs:
             records[record.status] += 1
@@ -104,7 +125,7 @@ def count_inputs(coadd: PatchCoadd) -> InputCounts:
         per_cell.append(used)
         n_empty += cell.is_empty
     return InputCounts(
-        n_cells=len(coadd.cells),
+        n_cells=n_cells,
         n_empty=n_empty,
         records=records,
         visits=visits,
@@ -117,11 +138,15 @@ def coverage_warning(coadd: PatchCoadd) -> str | None:
     """A one-paragraph warning when most cells are empty or most visits are lost to
     CCD edges, with the likely cause; None when the coadd looks useful.
     """
-    counts = count_inputs(coadd)
+    return counts_warning(count_inputs(coadd), coadd.metadata.skymap_config)
+
+
+def counts_warning(counts: InputCounts, config: SkyMapConfig) -> str | None:
+    """:func:`coverage_warning` from the counts of a patch's cells (``config``: its sky
+    map's)."""
     empty = counts.n_empty / counts.n_cells if counts.n_cells else 0.0
     if empty <= EMPTY_FRACTION_LIMIT and counts.edge_fraction <= EDGE_FRACTION_LIMIT:
         return None
-    config = coadd.metadata.skymap_config
     outer = (config.cell_inner + 2 * config.cell_border) * config.pixel_scale
     per = counts.visits_used_per_cell
     return (
@@ -140,5 +165,7 @@ __all__ = [
     "EMPTY_FRACTION_LIMIT",
     "InputCounts",
     "coverage_warning",
+    "count_cell_inputs",
     "count_inputs",
+    "counts_warning",
 ]

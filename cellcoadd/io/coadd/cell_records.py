@@ -4,14 +4,13 @@ the shapes its planes must have."""
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, Protocol
 
 from astropy.wcs import WCS
 
 from cellcoadd.errors import DamagedDataError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model import planes
-from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.patch_coadd import PatchMetadata
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 
@@ -38,7 +37,27 @@ class WcsRecords:
         return record
 
 
-def cell_record_json(cell: CellCoadd, wcs_records: WcsRecords | None = None) -> str:
+class CellIdentity(Protocol):
+    """What identifies a cell in a file: a :class:`CellCoadd`'s, or its geometry's
+    (:class:`~cellcoadd.geometry.tract.Cell`)."""
+
+    @property
+    def tract(self) -> int: ...
+
+    @property
+    def index(self) -> tuple[int, int]: ...
+
+    @property
+    def inner_bbox(self) -> Box: ...
+
+    @property
+    def outer_bbox(self) -> Box: ...
+
+    @property
+    def wcs(self) -> WCS: ...
+
+
+def cell_record_json(cell: CellIdentity, wcs_records: WcsRecords | None = None) -> str:
     """ASCII JSON of a cell's identity: tract, index, boxes and exact WCS.
 
     ``wcs_records`` describes the WCS (once per distinct WCS of a write); None: directly.

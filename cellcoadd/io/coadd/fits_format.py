@@ -33,14 +33,21 @@ from __future__ import annotations
 
 import base64
 import binascii
+import itertools
 import zlib
+from collections.abc import Iterator, Sequence
 from typing import Any, BinaryIO
 
 import fitsio
 import numpy as np
 from fitsio.hdu import AsciiTableHDU, ImageHDU, TableHDU
 
-from cellcoadd.errors import CellCoaddFormatError, CellCoaddOSError, DamagedDataError
+from cellcoadd.errors import (
+    CellCoaddFormatError,
+    CellCoaddOSError,
+    DamagedDataError,
+    InvalidCoaddError,
+)
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits import direct as fits_direct
 from cellcoadd.io._fits.checksums import (
@@ -55,6 +62,7 @@ from cellcoadd.io._fits.direct import UnsupportedCard, card
 from cellcoadd.io._fits.paths import cfitsio_path, check_fits_path
 from cellcoadd.io.coadd import format_version
 from cellcoadd.io.coadd.cell_records import (
+    CellIdentity,
     WcsRecords,
     cell_record_json,
     check_cell_geometry,
@@ -73,7 +81,7 @@ from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
-from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata, check_planes
 from cellcoadd.model.wcs_codec import wcs_to_record
 
 _FIRST_CELL_HDU = 3
@@ -114,29 +122,103 @@ def write_fits(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     writer does not reproduce exactly, through CFITSIO, followed by
     :func:`~cellcoadd.io._fits.checksums.stabilise_fits_checksums`.
     """
+    cells = list(patch.cells.values())
+    # every cell of a patch holds the same planes (PatchCoadd checks it)
+    present = cells[0].plane_names if cells else cell_planes.required_plane_names()
+    write_fits_cells(patch.metadata, cells, iter(cells), path, compress=compress, present=present)
+
+
+def write_fits_cells(
+    metadata: PatchMetadata,
+    identities: Sequence[CellIdentity],
+    cells: Iterator[CellCoadd],
+    path: str,
+    *,
+    compress: bool,
+    present: tuple[str, ...],
+) -> None:
+    """Write the patch of ``metadata`` from its ``cells`` as they come (as :func:`write_fits`).
+
+    ``identities`` (tract, index, boxes, WCS of every cell, in sorted index order: the
+    cells themselves, or their geometry) make the cell index at the head of the file;
+    ``cells`` must then give those cells in that order, each written and let go before the
+    next is taken (at most :data:`_BATCH` are held here). A cell whose identity is not the
+    one announced, or holding planes other than ``present`` (names, as
+    :attr:`CellCoadd.plane_names`), raises InvalidCoaddError.
+    """
     check_fits_path(path)
+    replay = _Replay(cells)
     if not compress:
         try:
-            _write_fits(patch, path, compress=False, direct=True)
+            _write_fits(
+                metadata, identities, replay, path, compress=False, direct=True, present=present
+            )
             return
         except UnsupportedCard:
-            pass  # something only CFITSIO writes as CFITSIO does: the same file through it
-    _write_fits(patch, path, compress=compress, direct=False)
+            # something only CFITSIO writes as CFITSIO does: the same file through it, from
+            # the cells still held (a file's first cells show it, when none was let go)
+            if not replay.replayable:
+                raise
+    _write_fits(
+        metadata, identities, replay.again(), path, compress=compress, direct=False,
+        present=present,
+    )  # fmt: skip
     stabilise_fits_checksums(path)
 
 
-def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -> None:
+#: Cells written together by the direct writer (its threads share them out).
+_BATCH = 8
+
+
+class _Replay:
+    """The cells of an iterator, taken again from the start by :meth:`again` as long as no
+    more than the first :data:`_BATCH` were taken (the others are not kept)."""
+
+    def __init__(self, cells: Iterator[CellCoadd]) -> None:
+        self._cells = cells
+        self._taken: list[CellCoadd] | None = []
+
+    @property
+    def replayable(self) -> bool:
+        return self._taken is not None
+
+    def __iter__(self) -> Iterator[CellCoadd]:
+        return self
+
+    def __next__(self) -> CellCoadd:
+        cell = next(self._cells)
+        if self._taken is not None:
+            self._taken.append(cell)
+            if len(self._taken) > _BATCH:
+                self._taken = None
+        return cell
+
+    def again(self) -> Iterator[CellCoadd]:
+        assert self._taken is not None  # see replayable
+        return itertools.chain(self._taken, self._cells)
+
+
+def _write_fits(
+    metadata: PatchMetadata,
+    identities: Sequence[CellIdentity],
+    cells: Iterator[CellCoadd],
+    path: str,
+    *,
+    compress: bool,
+    direct: bool,
+    present: tuple[str, ...],
+) -> None:
     # looked up on the module at each write, so tests can stand in for it
-    payload, version = format_version.metadata_payload(patch.metadata)
-    indices = list(patch.cells)
-    # every cell of a patch holds the same planes (PatchCoadd checks it)
-    present = next(iter(patch.cells.values())).plane_names if indices else ()
-    planes = _cell_planes(patch.metadata.n_noise, present)
+    payload, version = format_version.metadata_payload(metadata)
+    indices = [identity.index for identity in identities]
+    planes = _cell_planes(metadata.n_noise, present)
     n_hdu = _FIRST_CELL_HDU + len(planes) * len(indices)
-    meta = patch.metadata
+    meta = metadata
     # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
     unit_cards = meta.unit_cards()
     wcs_records = WcsRecords()
+    index_table, records = _index_table(identities, planes, wcs_records)
+    arriving = _checked(cells, identities, records, wcs_records, present)
     with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
         fits.write(
             None,
@@ -161,29 +243,58 @@ def _write_fits(patch: PatchCoadd, path: str, *, compress: bool, direct: bool) -
             "METADATA",
             [{"name": "METASHA", "value": sha256_hex(payload), "comment": "SHA-256"}],
         )
-        fits.write(
-            _index_table(patch, planes, wcs_records),
-            extname="CELLINDEX",
-            header=[DATACRC_PLACEHOLDER],
-        )
+        fits.write(index_table, extname="CELLINDEX", header=[DATACRC_PLACEHOLDER])
         fits[-1].write_checksum()
         if not direct:
             hdus: _CfitsioHdus | fits_direct.DirectHdus = _CfitsioHdus(fits, compress)
-            for index in indices:
-                _write_cell(hdus, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
+            for cell in arriving:
+                _write_cell(hdus, cell, plane_cards=unit_cards, records=wcs_records)
             # Readers check the length against it instead of walking every header to the end.
             size = fits[-1].get_offsets()["data_end"]
             fits[0].write_key("FILESIZE", size, comment="bytes in this file")
             fits[0].write_checksum()
             return
         head = [fits[number].get_offsets() for number in range(_FIRST_CELL_HDU)]
-    writer = fits_direct.DirectHdus()
-    for index in indices:
-        _write_cell(writer, patch.cells[index], plane_cards=unit_cards, records=wcs_records)
     with open(path, "r+b", buffering=0) as stream:  # (p)writev: a cell in one system call
-        size = writer.write(stream, head[-1]["data_end"])
+        size = head[-1]["data_end"]
+        for batch in iter(lambda: list(itertools.islice(arriving, _BATCH)), []):
+            writer = fits_direct.DirectHdus()
+            for cell in batch:
+                _write_cell(writer, cell, plane_cards=unit_cards, records=wcs_records)
+            size = writer.write(stream, size)
+            del batch, writer  # written: let go before the next batch comes
         stream.truncate(size)
         _finish_head(stream, head, size)
+
+
+def _checked(
+    cells: Iterator[CellCoadd],
+    identities: Sequence[CellIdentity],
+    records: list[str],
+    wcs_records: WcsRecords,
+    present: tuple[str, ...],
+) -> Iterator[CellCoadd]:
+    """``cells``, each checked to be the one announced in the cell index, holding the
+    planes ``present`` (InvalidCoaddError otherwise, or when there are more or fewer)."""
+    count = 0
+    for cell in cells:
+        if count >= len(identities):
+            raise InvalidCoaddError(f"cell {cell.index}: more cells than the {count} announced")
+        identity = identities[count]
+        if cell is not identity and cell_record_json(cell, wcs_records) != records[count]:
+            raise InvalidCoaddError(
+                f"cell {cell.index} came where cell {identity.index} was announced, or its "
+                "boxes or WCS differ from those announced"
+            )
+        check_planes(cell, present)
+        count += 1
+        yield cell
+        del cell  # written: not held here while the next one is made
+    if count != len(identities):
+        raise InvalidCoaddError(
+            f"{count} cells came of the {len(identities)} announced; cell "
+            f"{identities[count].index} is missing"
+        )
 
 
 def _finish_head(stream: BinaryIO, head: list[dict[str, int]], size: int) -> None:
@@ -220,22 +331,23 @@ def _read_at(stream: BinaryIO, offset: int, size: int) -> bytes:
 
 
 def _index_table(
-    patch: PatchCoadd, planes: list[str], wcs_records: WcsRecords | None = None
-) -> np.ndarray:
-    records = [cell_record_json(cell, wcs_records) for cell in patch.cells.values()]
+    identities: Sequence[CellIdentity], planes: list[str], wcs_records: WcsRecords | None = None
+) -> tuple[np.ndarray, list[str]]:
+    """The CELLINDEX table of the cells of ``identities`` and their identity records."""
+    records = [cell_record_json(identity, wcs_records) for identity in identities]
     width = max([1, *(len(text) for text in records)])
     dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
     dtype += [(hdu_column(plane), "<i4") for plane in cell_planes.cell_objects()]
     dtype += [("CELL", f"S{width}")]
     table = np.zeros(len(records), dtype=dtype)
-    for row, (index, text) in enumerate(zip(patch.cells, records, strict=True)):
+    for row, (identity, text) in enumerate(zip(identities, records, strict=True)):
         first = _FIRST_CELL_HDU + row * len(planes)
-        table[row]["CELL_X"], table[row]["CELL_Y"] = index
+        table[row]["CELL_X"], table[row]["CELL_Y"] = identity.index
         for plane in cell_planes.cell_objects():
             number = first + planes.index(plane) if plane in planes else -1
             table[row][hdu_column(plane)] = number
         table[row]["CELL"] = text.encode("ascii")
-    return table
+    return table, records
 
 
 class _CfitsioHdus:

@@ -16,6 +16,7 @@ formats, whose metadata blocks carry their own checksums.
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 from collections import deque
@@ -26,7 +27,7 @@ from typing import Any, NamedTuple
 import h5py
 import numpy as np
 
-from cellcoadd.errors import CellCoaddFormatError, DamagedDataError
+from cellcoadd.errors import CellCoaddFormatError, DamagedDataError, InvalidCoaddError
 from cellcoadd.io._files import parallel
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io.coadd import format_version
@@ -50,7 +51,7 @@ from cellcoadd.io.coadd.inputs_table import inputs_from_array, inputs_to_array
 from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
-from cellcoadd.model.patch_coadd import PatchCoadd
+from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata, check_planes
 
 _LIBVER = ("v110", "v110")
 _GROUP_NAME = re.compile(r"^(-?\d+)_(-?\d+)$")
@@ -77,18 +78,36 @@ def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
     itself is only called from this thread, in the same order whatever the timing, so the
     file's bytes do not depend on it.
     """
-    # looked up on the module at each write, so tests can stand in for it
-    payload, version = format_version.metadata_payload(patch.metadata)
+    # every cell of a patch holds the same planes (PatchCoadd checks it)
     cells = list(patch.cells.values())
+    present = cells[0].plane_names if cells else cell_planes.required_plane_names()
+    write_hdf5_cells(
+        patch.metadata, list(patch.cells), iter(cells), path, compress=compress, present=present
+    )
+
+
+def write_hdf5_cells(
+    metadata: PatchMetadata,
+    indices: list[tuple[int, int]],
+    cells: Iterator[CellCoadd],
+    path: str,
+    *,
+    compress: bool,
+    present: tuple[str, ...],
+) -> None:
+    """Write the patch of ``metadata`` from its ``cells`` as they come (as
+    :func:`write_hdf5`): those of ``indices`` (sorted), in that order, each holding the
+    planes ``present`` (names, as :attr:`CellCoadd.plane_names`), each let go once
+    written (at most ``(_AHEAD + 2) * _BATCH`` are held here)."""
+    # looked up on the module at each write, so tests can stand in for it
+    payload, version = format_version.metadata_payload(metadata)
     with (
         ObjectMaker(compress, _LIBVER) as maker,
         h5py.File(path, "w", libver=_LIBVER) as h5,
         _PreparedCells(cells, compress) as prepared,
     ):
         # Fixed-length byte strings are stored inside the (checksummed) object header.
-        # every cell of a patch holds the same planes (PatchCoadd checks it)
-        present = cells[0].plane_names if cells else cell_planes.required_plane_names()
-        contents = contents_json(list(patch.cells), present).encode("ascii")
+        contents = contents_json(indices, present).encode("ascii")
         root = [
             ("cellcoadd_format", FILE_KIND),
             ("format_version", version),
@@ -99,9 +118,20 @@ def write_hdf5(patch: PatchCoadd, path: str, *, compress: bool) -> None:
         ]
         maker.attributes(h5.id, root)
         maker.dataset(h5.id, "metadata", np.frombuffer(payload, dtype=np.uint8))
-        writer = _CellWriter(maker, maker.group(h5.id, "cells"), patch.metadata.unit_cards())
-        for cell, made in zip(cells, prepared, strict=True):
+        writer = _CellWriter(maker, maker.group(h5.id, "cells"), metadata.unit_cards())
+        count = 0
+        for cell, made in prepared:
+            if count >= len(indices) or cell.index != indices[count]:
+                expected = indices[count] if count < len(indices) else "none"
+                raise InvalidCoaddError(f"cell {cell.index} came where {expected} was expected")
+            check_planes(cell, present)
             _write_cell(writer, cell, made)
+            count += 1
+        if count != len(indices):
+            raise InvalidCoaddError(
+                f"{count} cells came of the {len(indices)} announced; cell "
+                f"{indices[count]} is missing"
+            )
 
 
 #: Cells prepared together, and batches prepared ahead of the one written (the buffers
@@ -129,7 +159,7 @@ class _PreparedCells:
     batch's buffers are reused once its cells are written. Use as a context manager:
     leaving it stops the worker before the buffers go."""
 
-    def __init__(self, cells: list[CellCoadd], compress: bool) -> None:
+    def __init__(self, cells: Iterator[CellCoadd], compress: bool) -> None:
         self.cells = cells
         self.compress = compress
         self.records = WcsRecords()  # used by one thread at a time
@@ -146,18 +176,24 @@ class _PreparedCells:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
 
-    def __iter__(self) -> Iterator[_Prepared]:
-        # small first batches: writing starts as soon as the first cell is ready
-        batches, start, size = [], 0, 1
-        while start < len(self.cells):
-            batches.append(self.cells[start : start + size])
-            start, size = start + size, min(2 * size, _BATCH)
-        pending: deque[Future[list[_Prepared]]] = deque()
-        for number in range(len(batches)):
-            while len(pending) <= _AHEAD and number + len(pending) < len(batches):
-                ahead = number + len(pending)
-                pending.append(self._submit(batches[ahead], self._slots[ahead % len(self._slots)]))
-            yield from pending.popleft().result()
+    def __iter__(self) -> Iterator[tuple[CellCoadd, _Prepared]]:
+        # small first batches: writing starts as soon as the first cell is ready; the
+        # cells are taken from their iterator here, in this thread, a batch at a time
+        sizes = itertools.chain((1, 2, 4), itertools.repeat(_BATCH))
+        pending: deque[tuple[list[CellCoadd], Future[list[_Prepared]]]] = deque()
+        number = 0
+        while True:
+            while len(pending) <= _AHEAD:
+                batch = list(itertools.islice(self.cells, min(next(sizes), _BATCH)))
+                if not batch:
+                    break
+                pending.append((batch, self._submit(batch, self._slots[number % len(self._slots)])))
+                number += 1
+            if not pending:
+                return
+            batch, future = pending.popleft()
+            yield from zip(batch, future.result(), strict=True)
+            del batch  # written: its cells are let go
 
     def _submit(self, batch: list[CellCoadd], slot: _Slot) -> Future[list[_Prepared]]:
         if self._executor is not None:
