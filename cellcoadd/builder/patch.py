@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import (
     BrokenExecutor,
     Executor,
@@ -42,7 +42,7 @@ from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, prepare
 from cellcoadd.builder.psf import warn_truncated_psfs
-from cellcoadd.errors import CellBuildError
+from cellcoadd.errors import CellBuildError, ConfigError, InvalidCoaddError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -252,6 +252,21 @@ def _task_count(pool: Executor | None, client: Any, workers: int, sources: bool)
     return n_workers if sources else 2 * n_workers
 
 
+def _chosen_cells(patch: Patch, cells: Collection[tuple[int, int]] | None) -> list[Cell]:
+    """The cells of ``patch`` named by ``cells`` (all when None), in the patch's order."""
+    if cells is None:
+        return list(patch.cells)
+    wanted = {(int(c[0]), int(c[1])) for c in cells}
+    chosen = [cell for cell in patch.cells if cell.index in wanted]
+    if len(chosen) != len(wanted):
+        missing = sorted(wanted - {cell.index for cell in chosen})
+        raise ConfigError(
+            f"cells {missing[:5]} are not cells of patch {patch.index} of tract "
+            f"{patch.tract.id}"
+        )
+    return chosen
+
+
 def build_patch(
     patch: Patch,
     exposures: Sequence[Exposure | ExposureSource | DescribedSource],
@@ -262,8 +277,10 @@ def build_patch(
     *,
     workers: int = 1,
     scheduler: object | None = None,
+    cells: Collection[tuple[int, int]] | None = None,
 ) -> PatchCoadd:
-    """Build every cell (inner and border) of ``patch`` from ``exposures``.
+    """Build every cell (inner and border) of ``patch`` from ``exposures``, or only
+    ``cells`` of them.
 
     Parameters
     ----------
@@ -315,9 +332,9 @@ def build_patch(
     environment of ``dask worker``). Results are identical either way.
     """
     config = config or BuildConfig()
-    cells = patch.cells
+    chosen = _chosen_cells(patch, cells)
     build = prepare(
-        cells, exposures, config, seed, one_band=True, area=patch.outer_bbox, record_distant=False
+        chosen, exposures, config, seed, one_band=True, area=patch.outer_bbox, record_distant=False
     )
     band = build.settings.band
     assert band is not None  # one_band
@@ -335,14 +352,14 @@ def build_patch(
     owned = isinstance(pool, ProcessPoolExecutor) and release is not None
     tasks: list[Task] = []
     sources = any(item.source is not None for item in build.inputs)
-    for block in blocks_of(cells, _task_count(pool, client, workers, sources)):
+    for block in blocks_of(chosen, _task_count(pool, client, workers, sources)):
         indices = build.candidates(block)  # only these can change the block's cells
         tasks.append(
             (block, indices if owned or client is not None else [framed[i] for i in indices])
         )
     run = functools.partial(_build_block, build.settings)
     results: dict[tuple[int, int], CellCoadd] = {}
-    bar = tqdm(total=len(cells), desc=f"patch {patch.index}", unit="cell", disable=not progress)
+    bar = tqdm(total=len(chosen), desc=f"patch {patch.index}", unit="cell", disable=not progress)
     try:
         if client is not None:
             _run_on_dask(client, tasks, framed, run, results, bar)
@@ -369,6 +386,36 @@ def build_patch(
         software_version=__version__,
         format_version=FORMAT_VERSION,
     )
-    ordered = {cell.index: results[cell.index] for cell in cells}
+    ordered = {cell.index: results[cell.index] for cell in chosen}
     warn_truncated_psfs(ordered.values())  # here: warnings in worker processes are lost
     return PatchCoadd(metadata=metadata, cells=ordered)
+
+
+def merge_patch_parts(parts: Sequence[PatchCoadd]) -> PatchCoadd:
+    """The patch made of the cells of several partial builds of it (``build_patch(...,
+    cells=...)`` with the same inputs, configuration and seed).
+
+    The result is the patch built at once, bit for bit, when the parts hold every cell.
+
+    Raises
+    ------
+    InvalidCoaddError
+        When there is no part, the parts' metadata differ (another patch, inputs or
+        settings) or a cell is in two parts.
+    """
+    if not parts:
+        raise InvalidCoaddError("no part to merge into a patch")
+    metadata = parts[0].metadata
+    cells: dict[tuple[int, int], CellCoadd] = {}
+    for part in parts:
+        if part.metadata != metadata:
+            raise InvalidCoaddError(
+                f"parts of patch {metadata.patch} of tract {metadata.tract} were built with "
+                f"different metadata (patch {part.metadata.patch}, tract {part.metadata.tract})"
+            )
+        for key, cell in part.cells.items():
+            if key in cells:
+                raise InvalidCoaddError(f"cell {key} is in two parts of patch {metadata.patch}")
+            cells[key] = cell
+    return PatchCoadd(metadata=metadata, cells=cells)
+
