@@ -60,9 +60,7 @@ def _skymap(patches: int, cells: int):
     return SkyMap.from_centers([SKY_CENTER], config)
 
 
-def write_inputs(
-    directory: Path, visits: int, patches: int, cells: int, ccd: int
-) -> list[Path]:
+def write_inputs(directory: Path, visits: int, patches: int, cells: int, ccd: int) -> list[Path]:
     """One noise-only exposure file per (visit, patch), centred on the patch (reused when
     the directory has it already: name it by the job)."""
     import galsim
@@ -135,7 +133,7 @@ def _tree_cpu(pid: int) -> float:
 _CLUSTER = """
 import sys, dask, distributed
 dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432})
-cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)
+cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0")
 print(cluster.scheduler_address, flush=True)
 sys.stdin.read()
 cluster.close()

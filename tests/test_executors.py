@@ -156,8 +156,9 @@ def test_a_patch_built_in_parts_and_merged_is_the_patch_built_at_once(tmp_path, 
     bands = blocks_of(patch.cells, 3)
     assert len(bands) >= 2
     parts = [
-        build_patch(patch, good, TINY_BUILD, seed=1, progress=False,
-                    cells=[c.index for c in cells])  # fmt: skip
+        build_patch(
+            patch, good, TINY_BUILD, seed=1, progress=False, cells=[c.index for c in cells]
+        )  # fmt: skip
         for cells in reversed(bands)  # any order
     ]
     assert [len(p.cells) for p in parts] == [len(b) for b in reversed(bands)]

@@ -261,8 +261,7 @@ def _chosen_cells(patch: Patch, cells: Collection[tuple[int, int]] | None) -> li
     if len(chosen) != len(wanted):
         missing = sorted(wanted - {cell.index for cell in chosen})
         raise ConfigError(
-            f"cells {missing[:5]} are not cells of patch {patch.index} of tract "
-            f"{patch.tract.id}"
+            f"cells {missing[:5]} are not cells of patch {patch.index} of tract {patch.tract.id}"
         )
     return chosen
 
@@ -418,4 +417,3 @@ def merge_patch_parts(parts: Sequence[PatchCoadd]) -> PatchCoadd:
                 raise InvalidCoaddError(f"cell {key} is in two parts of patch {metadata.patch}")
             cells[key] = cell
     return PatchCoadd(metadata=metadata, cells=cells)
-

@@ -12,8 +12,9 @@ still the one indexed, builds the patch with :func:`~cellcoadd.builder.build_pat
 with :func:`cellcoadd.io.api.write` (atomic) and returns a summary of a few kB. When
 the patches are too few to keep every worker busy to the end (nine patches on two
 workers), each is cut into bands of cell rows built as separate tasks and put together
-by the worker that writes the file (the cells never come here). A patch's file is therefore byte-identical to ``cellcoadd build`` of that patch with the
-same inputs, in the same order (visit, detector), configuration and seed.
+by the worker that writes the file (the cells never come here). A patch's file is
+therefore byte-identical to ``cellcoadd build`` of that patch with the same inputs, in
+the same order (visit, detector), configuration and seed.
 
 Failures are retried (``retries`` times: a damaged file, a worker killed, a lost
 connection), then recorded as failed with the reason; the other patches go on. See
@@ -566,7 +567,7 @@ def dask_cluster(workers: int) -> tuple[Any, Callable[[], None]]:
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=None,
+            dashboard_address=":0",  # any free port: no clash with another cluster
         )
         client = distributed.Client(cluster)
 
@@ -626,8 +627,13 @@ def _run_on_dask(
             else:
                 # the parts stay on the workers: the one writing the patch gathers them
                 parts = [
-                    client.submit(build_part_task, task, tuple(c.index for c in cells),
-                                  key=f"{key}-part{k}", pure=False)  # fmt: skip
+                    client.submit(
+                        build_part_task,
+                        task,
+                        tuple(c.index for c in cells),
+                        key=f"{key}-part{k}",
+                        pure=False,
+                    )  # fmt: skip
                     for k, cells in enumerate(blocks_of(task.patch.cells, n_parts))
                 ]
                 future = client.submit(write_patch_task, task, *parts, key=key, pure=False)
