@@ -132,7 +132,8 @@ def _tree_cpu(pid: int) -> float:
 
 _CLUSTER = """
 import sys, dask, distributed
-dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432})
+from cellcoadd.builder.executors import DASK_WORKER_CONFIG
+dask.config.set(DASK_WORKER_CONFIG)  # as docs/survey-runs.md asks of a cluster
 cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0")
 print(cluster.scheduler_address, flush=True)
 sys.stdin.read()

@@ -416,13 +416,43 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
 
     client, close = dask_cluster(2)
     try:
+        # the workers run with cellcoadd's settings (heap arrays, no 10 ms profiler)
+        settings = client.run(_worker_settings)
         result = run_tract(
             field / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=BUILD,
             patches=[(0, 0), (1, 1), (2, 2)], scheduler=client, progress=False, figure=False,
         )  # fmt: skip
     finally:
         close()
+    assert len(settings) == 2
+    assert set(settings.values()) == {("33554432", False, "1s")}
     assert not result.failed and sorted(result.built) == [(0, 0), (1, 1), (2, 2)]
     assert not _same_outputs(tmp_path / "out", field / "reference")
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert {p["parts"] for p in report["patches"]} == {2}
+
+
+def _worker_settings() -> tuple:
+    import dask
+
+    return (
+        os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+        dask.config.get("distributed.worker.profile.enabled"),
+        dask.config.get("distributed.admin.tick.interval"),
+    )
+
+
+def test_worker_environment_gives_dask_the_same_settings():
+    """Workers started elsewhere (a job script) get the same configuration from the
+    environment variables as the local cluster from DASK_WORKER_CONFIG."""
+    import dask
+
+    from cellcoadd.builder.executors import DASK_WORKER_CONFIG, dask_worker_environment
+
+    env = dask_worker_environment()
+    assert env.pop("MALLOC_MMAP_THRESHOLD_") == "33554432"
+    assert all(name.startswith("DASK_DISTRIBUTED__") and "-" not in name for name in env)
+    with dask.config.set(dask.config.collect_env(env)):
+        for key, value in DASK_WORKER_CONFIG.items():
+            if "pre-spawn-environ" not in key:
+                assert dask.config.get(key) == value, key

@@ -320,15 +320,16 @@ def build_patch(
     Dask workers started by a nanny (``LocalCluster``, ``dask worker``) get
     ``MALLOC_TRIM_THRESHOLD_=65536`` from dask's ``distributed.nanny.pre-spawn-environ``
     setting, which makes glibc map and unmap every array above 128 kB: cells then build
-    up to ~1.9x slower than in a plain process. Keeping such arrays on the heap restores
-    the speed; set this before the cluster (or the worker) starts::
+    up to ~1.9x slower than in a plain process; dask's profiler and monitors add 10-14%
+    CPU. :data:`~cellcoadd.builder.executors.DASK_WORKER_CONFIG` restores the speed; set
+    it before the cluster starts::
 
-        dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432})
+        dask.config.set(DASK_WORKER_CONFIG)
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1)
 
-    or the same key under ``distributed: nanny: pre-spawn-environ:`` in the dask YAML
-    configuration of the worker machines (or ``MALLOC_MMAP_THRESHOLD_=33554432`` in the
-    environment of ``dask worker``). Results are identical either way.
+    or, for workers started elsewhere (``dask worker``, a job script), put
+    :func:`~cellcoadd.builder.executors.dask_worker_environment` in their environment.
+    Results are identical either way.
     """
     config = config or BuildConfig()
     chosen = _chosen_cells(patch, cells)

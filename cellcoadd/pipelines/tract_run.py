@@ -557,12 +557,9 @@ def dask_cluster(workers: int) -> tuple[Any, Callable[[], None]]:
     distributed = _import_distributed()
     import dask
 
-    with dask.config.set(
-        {
-            "distributed.scheduler.allowed-failures": 0,
-            "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432,
-        }
-    ):
+    from cellcoadd.builder.executors import DASK_WORKER_CONFIG
+
+    with dask.config.set({**DASK_WORKER_CONFIG, "distributed.scheduler.allowed-failures": 0}):
         cluster = distributed.LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
