@@ -1,11 +1,14 @@
 """Tract runs at small scale: serial vs a LocalCluster vs a scheduler address, the exposure
 index, and the cost of the bookkeeping.
 
-The job: a tract of ``--patches`` x ``--patches`` patches (default 3 x 3) of 2 x 2 inner
-cells (150 + 2 x 50 px at 0.2"/px, 16 cells per patch with the border ring, K = 3), from
-``--visits`` x (patches) noise-only exposure files of ``--ccd`` x ``--ccd`` px (default
-12 x 9 = 108 files of 520 x 520 px), one detector centred on each patch per visit
-(dithered, rotated), so each patch reads its own detector and its neighbours'. The files
+The job: a tract of ``--patches`` x ``--patches`` patches (default 3 x 3) of
+``--cells`` x ``--cells`` inner cells (default 4 x 4; 150 + 2 x 50 px at 0.2"/px, 36
+cells per patch with the border ring, K = 3), from ``--visits`` x (patches) noise-only
+exposure files (default 12 x 9 = 108 files) of ``--ccd`` x ``--ccd`` px (default: the
+patch's outer box plus 100 px, 1100 px for 4 x 4 cells), one detector centred on each
+patch per visit (dithered, rotated), so that each covers its patch and each patch reads
+its own detector and its neighbours'. ``--cells 2 --ccd 520`` is the small job of the
+first measurements (fixed costs per worker then dominate a 2 s patch). The files
 are indexed (``cellcoadd index``), then the whole tract is run with ``cellcoadd run``:
 
 * ``serial``: ``--workers 1`` (in the run's own process);
@@ -34,6 +37,7 @@ import hashlib
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -46,24 +50,25 @@ from common import format_table, idle_cores, machine_summary
 SKY_CENTER = (60.0, -30.0)
 
 
-def _skymap(patches: int):
+def _skymap(patches: int, cells: int):
     from cellcoadd import SkyMap, SkyMapConfig
 
     config = SkyMapConfig(
-        pixel_scale=0.2, cell_inner=150, cell_border=50, cells_per_patch=2,
+        pixel_scale=0.2, cell_inner=150, cell_border=50, cells_per_patch=cells,
         patches_per_tract=patches,
     )  # fmt: skip
     return SkyMap.from_centers([SKY_CENTER], config)
 
 
-def write_inputs(directory: Path, visits: int, patches: int, ccd: int) -> list[Path]:
-    """One noise-only exposure file per (visit, patch), centred on the patch (reused)."""
+def write_inputs(directory: Path, visits: int, patches: int, cells: int, ccd: int) -> list[Path]:
+    """One noise-only exposure file per (visit, patch), centred on the patch (reused when
+    the directory has it already: name it by the job)."""
     import galsim
     from common import exposure_wcs
 
     from cellcoadd import Exposure, write_exposure
 
-    tract = _skymap(patches)[0]
+    tract = _skymap(patches, cells)[0]
     rng = np.random.default_rng(26)
     paths = []
     for visit in range(visits):
@@ -93,7 +98,10 @@ def write_inputs(directory: Path, visits: int, patches: int, ccd: int) -> list[P
 
 
 def _cli(args: list[str]) -> tuple[float, float, str]:
-    """Run ``cellcoadd ARGS`` in a fresh process: wall s, CPU s (it and its children)."""
+    """Run ``cellcoadd ARGS`` in a fresh process (its ``--out-dir`` emptied first, so that
+    every run builds everything): wall s, CPU s (it and its children)."""
+    if "--out-dir" in args:
+        shutil.rmtree(args[args.index("--out-dir") + 1], ignore_errors=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
@@ -124,8 +132,9 @@ def _tree_cpu(pid: int) -> float:
 
 _CLUSTER = """
 import sys, dask, distributed
-dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432})
-cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)
+from cellcoadd.builder.executors import DASK_WORKER_CONFIG
+dask.config.set(DASK_WORKER_CONFIG)  # as docs/survey-runs.md asks of a cluster
+cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0")
 print(cluster.scheduler_address, flush=True)
 sys.stdin.read()
 cluster.close()
@@ -231,7 +240,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--visits", type=int, default=12, help="visits (files per patch)")
     parser.add_argument("--patches", type=int, default=3, help="patches per tract side")
-    parser.add_argument("--ccd", type=int, default=520, help="exposure side, px")
+    parser.add_argument("--cells", type=int, default=4, help="inner cells per patch side")
+    parser.add_argument("--ccd", type=int, help="exposure side, px (default: covers a patch)")
     parser.add_argument("--repeats", type=int, default=1, help="interleaved rounds")
     parser.add_argument("--rows", type=int, default=100_000, help="synthetic index rows")
     parser.add_argument("--workdir", help="keep the exposure files here (default: temporary)")
@@ -247,20 +257,24 @@ def main() -> None:
         )
         return
     if args.quick:
-        args.visits, args.rows = 3, 10_000
+        args.visits, args.rows, args.cells = 3, 10_000, 2
+    if args.ccd is None:
+        args.ccd = (args.cells + 2) * 150 + 2 * 50 + 100  # the patch's outer box + 100 px
     print(f"machine: {machine_summary()}")
     n_patches = args.patches**2
     print(
-        f"job: tract of {args.patches} x {args.patches} patches of 16 cells (250 x 250 px, "
-        f"K = 3) from {args.visits * n_patches} exposure files of {args.ccd} x {args.ccd} px"
+        f"job: tract of {args.patches} x {args.patches} patches of {(args.cells + 2) ** 2} "
+        f"cells (250 x 250 px, K = 3) from {args.visits * n_patches} exposure files of "
+        f"{args.ccd} x {args.ccd} px"
     )
     with tempfile.TemporaryDirectory() as temporary:
         work = Path(args.workdir or temporary)
-        (work / "inputs").mkdir(parents=True, exist_ok=True)
+        inputs = work / f"inputs-{args.patches}p-{args.cells}c-{args.ccd}px"
+        inputs.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
-        paths = write_inputs(work / "inputs", args.visits, args.patches, args.ccd)
+        paths = write_inputs(inputs, args.visits, args.patches, args.cells, args.ccd)
         print(f"inputs: {len(paths)} files ready in {time.perf_counter() - start:.1f} s")
-        (work / "skymap.json").write_text(_skymap(args.patches).to_json())
+        (work / "skymap.json").write_text(_skymap(args.patches, args.cells).to_json())
         db = work / "inputs.sqlite"
         index_rows = []
         for workers in (1, 2):

@@ -148,6 +148,34 @@ def test_written_files_carry_no_timestamps(tmp_path, tiny):
             hdu.verify_checksum()  # the rewritten checksum cards are valid FITS checksums
 
 
+def test_a_patch_built_in_parts_and_merged_is_the_patch_built_at_once(tmp_path, tiny):
+    from cellcoadd.builder.patch import blocks_of, merge_patch_parts
+    from cellcoadd.errors import ConfigError, InvalidCoaddError
+
+    patch, good, whole = tiny
+    bands = blocks_of(patch.cells, 3)
+    assert len(bands) >= 2
+    parts = [
+        build_patch(
+            patch, good, TINY_BUILD, seed=1, progress=False, cells=[c.index for c in cells]
+        )  # fmt: skip
+        for cells in reversed(bands)  # any order
+    ]
+    assert [len(p.cells) for p in parts] == [len(b) for b in reversed(bands)]
+    merged = merge_patch_parts(parts)
+    api.write(whole, tmp_path / "whole.fits")
+    api.write(merged, tmp_path / "merged.fits")
+    assert _sha256(tmp_path / "whole.fits") == _sha256(tmp_path / "merged.fits")
+    with pytest.raises(InvalidCoaddError, match="two parts"):
+        merge_patch_parts([parts[0], parts[0]])
+    with pytest.raises(InvalidCoaddError, match="different metadata"):
+        merge_patch_parts([parts[0], build_patch(patch, good, BuildConfig(psf_size=21),
+                                                 seed=1, progress=False,
+                                                 cells=[bands[0][0].index])])  # fmt: skip
+    with pytest.raises(ConfigError, match=r"not cells of patch"):
+        build_patch(patch, good, TINY_BUILD, progress=False, cells=[(99, 99)])
+
+
 @pytest.fixture(scope="module")
 def dask_client():
     distributed = pytest.importorskip("distributed")

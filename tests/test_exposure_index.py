@@ -177,6 +177,31 @@ def test_readonly_open_of_a_missing_or_foreign_file_names_it(tmp_path):
         ExposureIndex(other)
 
 
+def test_index_and_ledger_paths_go_through_the_path_gate(tmp_path):
+    """A FIFO or a directory where an index or a ledger should be is refused, named,
+    before SQLite opens it (a FIFO would hang the open); odd characters in a read-only
+    index's path are not taken for URI syntax."""
+    from cellcoadd.pipelines.ledger import Ledger
+
+    fifo = tmp_path / "inputs.sqlite"
+    os.mkfifo(fifo)
+    for readonly in (True, False):
+        with pytest.raises(CellCoaddFormatError, match=r"inputs\.sqlite.*FIFO"):
+            ExposureIndex(fifo, readonly=readonly)
+    (tmp_path / "dir.sqlite").mkdir()
+    with pytest.raises(CellCoaddFormatError, match="directory"):
+        ExposureIndex(tmp_path / "dir.sqlite")
+    out = tmp_path / "out"
+    (out / "ledger.sqlite").mkdir(parents=True)
+    with pytest.raises(CellCoaddFormatError, match=r"ledger\.sqlite.*directory"):
+        Ledger(out)
+    odd = tmp_path / "odd?mode=rw#x.sqlite"
+    with ExposureIndex(odd):
+        pass
+    with ExposureIndex(odd, readonly=True) as index:
+        assert index.stats()["files"] == 0
+
+
 def test_index_command_updates_and_summarises(tmp_path):
     paths = write_field(tmp_path, n_visits=1)
     db = str(tmp_path / "inputs.sqlite")

@@ -6,6 +6,47 @@ from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
 
+#: dask settings for the processes that build cells (set them before a cluster starts:
+#: ``dask.config.set(DASK_WORKER_CONFIG)``, or under the same keys in the dask YAML of the
+#: worker machines). Results do not depend on them; CPU does:
+#:
+#: * ``MALLOC_MMAP_THRESHOLD_`` keeps arrays above 128 kB on the heap: the nanny's default
+#:   ``MALLOC_TRIM_THRESHOLD_`` makes glibc map and unmap each, and cells build up to
+#:   ~1.9x slower;
+#: * the statistical profiler (the task's stack sampled every 10 ms), the event loops'
+#:   20 ms tick, the 100 ms memory monitor and the GIL monitor cost 10-14% of a busy
+#:   worker's CPU (measured on 2 single-threaded workers); with these values, ~3%.
+DASK_WORKER_CONFIG: dict[str, Any] = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432,
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.admin.system-monitor.gil.enabled": False,
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
+
+def dask_worker_environment() -> dict[str, str]:
+    """:data:`DASK_WORKER_CONFIG` as environment variables, for workers started elsewhere
+    (``dask worker`` on a cluster node, a dask-jobqueue job script), which read their own
+    configuration: ``MALLOC_MMAP_THRESHOLD_`` itself, and ``DASK_A__B__C`` for ``a.b.c``.
+
+    Examples
+    --------
+    >>> env = dask_worker_environment()
+    >>> env["DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"], env["MALLOC_MMAP_THRESHOLD_"]
+    ('False', '33554432')
+    """
+    prefix = "distributed.nanny.pre-spawn-environ."
+    environment = {}
+    for key, value in DASK_WORKER_CONFIG.items():
+        if key.startswith(prefix):
+            environment[key[len(prefix) :]] = str(value)
+        else:
+            parts = (part.upper().replace("-", "_") for part in key.split("."))
+            environment["DASK_" + "__".join(parts)] = str(value)
+    return environment
+
 
 def dask_client(scheduler: object) -> tuple[Any, Callable[[], None] | None]:
     """The ``distributed.Client`` for ``scheduler`` and how to release it.

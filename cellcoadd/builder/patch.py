@@ -31,7 +31,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import (
     FIRST_COMPLETED,
     BrokenExecutor,
@@ -50,7 +50,7 @@ from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, PreparedBuild, prepare
 from cellcoadd.builder.psf import PsfLoss, psf_loss, warn_psf_losses
-from cellcoadd.errors import CellBuildError
+from cellcoadd.errors import CellBuildError, ConfigError, InvalidCoaddError
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -325,6 +325,20 @@ def _task_count(pool: Executor | None, client: Any, workers: int, sources: bool)
     return n_workers if sources else 2 * n_workers
 
 
+def _chosen_cells(patch: Patch, cells: Collection[tuple[int, int]] | None) -> list[Cell]:
+    """The cells of ``patch`` named by ``cells`` (all when None), in the patch's order."""
+    if cells is None:
+        return list(patch.cells)
+    wanted = {(int(c[0]), int(c[1])) for c in cells}
+    chosen = [cell for cell in patch.cells if cell.index in wanted]
+    if len(chosen) != len(wanted):
+        missing = sorted(wanted - {cell.index for cell in chosen})
+        raise ConfigError(
+            f"cells {missing[:5]} are not cells of patch {patch.index} of tract {patch.tract.id}"
+        )
+    return chosen
+
+
 def build_patch(
     patch: Patch,
     exposures: Sequence[Exposure | ExposureSource | DescribedSource],
@@ -335,8 +349,10 @@ def build_patch(
     *,
     workers: int = 1,
     scheduler: object | None = None,
+    cells: Collection[tuple[int, int]] | None = None,
 ) -> PatchCoadd:
-    """Build every cell (inner and border) of ``patch`` from ``exposures``.
+    """Build every cell (inner and border) of ``patch`` from ``exposures``, or only
+    ``cells`` of them.
 
     Parameters
     ----------
@@ -364,6 +380,11 @@ def build_patch(
         client (left open) to run the cells on, when no ``executor`` is given. The
         exposures are sent to the workers once (released at the end); each task carries
         a cell and references to its exposures. See the notes on the workers' settings.
+    cells : collection of (int, int), optional
+        Build only these cells (tract-global cell indices, all of ``patch``): each comes
+        out bit-identical to the same cell of a build of the whole patch (the inputs are
+        still mapped over the whole patch), so a patch built in parts and put together
+        (:func:`merge_patch_parts`) equals the patch built at once.
 
     Raises
     ------
@@ -377,15 +398,16 @@ def build_patch(
     Dask workers started by a nanny (``LocalCluster``, ``dask worker``) get
     ``MALLOC_TRIM_THRESHOLD_=65536`` from dask's ``distributed.nanny.pre-spawn-environ``
     setting, which makes glibc map and unmap every array above 128 kB: cells then build
-    up to ~1.9x slower than in a plain process. Keeping such arrays on the heap restores
-    the speed; set this before the cluster (or the worker) starts::
+    up to ~1.9x slower than in a plain process; dask's profiler and monitors add 10-14%
+    CPU. :data:`~cellcoadd.builder.executors.DASK_WORKER_CONFIG` restores the speed; set
+    it before the cluster starts::
 
-        dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432})
+        dask.config.set(DASK_WORKER_CONFIG)
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1)
 
-    or the same key under ``distributed: nanny: pre-spawn-environ:`` in the dask YAML
-    configuration of the worker machines (or ``MALLOC_MMAP_THRESHOLD_=33554432`` in the
-    environment of ``dask worker``). Results are identical either way.
+    or, for workers started elsewhere (``dask worker``, a job script), put
+    :func:`~cellcoadd.builder.executors.dask_worker_environment` in their environment.
+    Results are identical either way.
     """
     stream = stream_patch(
         patch,
@@ -396,6 +418,7 @@ def build_patch(
         progress,
         workers=workers,
         scheduler=scheduler,
+        cells=cells,
     )
     with stream:
         cells = {coadd.index: coadd for coadd in stream}
@@ -412,8 +435,10 @@ def stream_patch(
     *,
     workers: int = 1,
     scheduler: object | None = None,
+    cells: Collection[tuple[int, int]] | None = None,
 ) -> PatchStream:
-    """The cells of ``patch`` built from ``exposures``, given one by one as they are done.
+    """The cells of ``patch`` (or only ``cells`` of them) built from ``exposures``, given
+    one by one as they are done.
 
     The parameters, the set-up (inputs checked, headers read, exposures mapped) and the
     errors are those of :func:`build_patch`, whose cells are the same bit for bit; the
@@ -430,9 +455,9 @@ def stream_patch(
         call ``close``): leaving it stops the workers.
     """
     config = config or BuildConfig()
-    cells = patch.cells
+    chosen = _chosen_cells(patch, cells)
     build = prepare(
-        cells, exposures, config, seed, one_band=True, area=patch.outer_bbox, record_distant=False
+        chosen, exposures, config, seed, one_band=True, area=patch.outer_bbox, record_distant=False
     )
     band = build.settings.band
     assert band is not None  # one_band
@@ -449,8 +474,8 @@ def stream_patch(
         software_version=__version__,
         format_version=FORMAT_VERSION,
     )
-    blocks = _built_blocks(patch, build, executor, progress, workers, scheduler)
-    return PatchStream(metadata, sorted(cell.index for cell in cells), blocks)
+    blocks = _built_blocks(patch, chosen, build, executor, progress, workers, scheduler)
+    return PatchStream(metadata, sorted(cell.index for cell in chosen), blocks)
 
 
 class PatchStream:
@@ -502,14 +527,15 @@ class PatchStream:
 
 def _built_blocks(
     patch: Patch,
+    cells: list[Cell],
     build: PreparedBuild,
     executor: Executor | None,
     progress: bool,
     workers: int,
     scheduler: object | None,
 ) -> Iterator[list[CellCoadd]]:
-    """Build the blocks of ``patch`` (see :func:`stream_patch`); yield them in file order."""
-    cells = patch.cells
+    """Build the blocks of ``cells`` of ``patch`` (see :func:`stream_patch`); yield them in
+    file order."""
     # each exposure mapped once onto the patch, from its header: shared by every block
     framed = [(item, frame) for item, frame in zip(build.inputs, build.frames, strict=True)]
     client = pool = None
@@ -556,3 +582,32 @@ def _built_blocks(
         bar.close()
         if release is not None:
             release()
+
+
+def merge_patch_parts(parts: Sequence[PatchCoadd]) -> PatchCoadd:
+    """The patch made of the cells of several partial builds of it (``build_patch(...,
+    cells=...)`` with the same inputs, configuration and seed).
+
+    The result is the patch built at once, bit for bit, when the parts hold every cell.
+
+    Raises
+    ------
+    InvalidCoaddError
+        When there is no part, the parts' metadata differ (another patch, inputs or
+        settings) or a cell is in two parts.
+    """
+    if not parts:
+        raise InvalidCoaddError("no part to merge into a patch")
+    metadata = parts[0].metadata
+    cells: dict[tuple[int, int], CellCoadd] = {}
+    for part in parts:
+        if part.metadata != metadata:
+            raise InvalidCoaddError(
+                f"parts of patch {metadata.patch} of tract {metadata.tract} were built with "
+                f"different metadata (patch {part.metadata.patch}, tract {part.metadata.tract})"
+            )
+        for key, cell in part.cells.items():
+            if key in cells:
+                raise InvalidCoaddError(f"cell {key} is in two parts of patch {metadata.patch}")
+            cells[key] = cell
+    return PatchCoadd(metadata=metadata, cells=cells)

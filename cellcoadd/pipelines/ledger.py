@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcoadd.errors import CellCoaddFormatError, RunLockedError
+from cellcoadd.io._files.path_gate import gate_write
 
 LEDGER_NAME = "ledger.sqlite"
 LOCK_NAME = ".run.lock"
@@ -137,8 +138,10 @@ class Ledger:
 
     def __init__(self, out_dir: str | os.PathLike[str]):
         self.path = os.path.join(os.fspath(out_dir), LEDGER_NAME)
+        # a FIFO, a device or a directory in its place is refused before SQLite opens it
+        resolved = gate_write(self.path, what="run ledger")
         try:
-            self._db = sqlite3.connect(self.path, timeout=60.0)
+            self._db = sqlite3.connect(resolved, timeout=60.0)
             self._db.executescript(_SCHEMA)
             with self._db:
                 self._db.execute(

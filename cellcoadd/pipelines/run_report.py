@@ -32,6 +32,7 @@ _PATCH_FIELDS = (
     "wall_s",
     "peak_rss_mb",
     "worker",
+    "parts",
 )
 
 

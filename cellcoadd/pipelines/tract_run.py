@@ -9,9 +9,12 @@ rows of its inputs, the configuration and the output path). A worker reads the r
 stored headers from the index (no header is parsed), checks that every input file is
 still the one indexed, builds the patch with :func:`~cellcoadd.builder.build_patch`
 (serially: one patch per worker at a time bounds its memory by one patch), writes it
-with :func:`cellcoadd.io.api.write` (atomic) and returns a summary of a few kB. A
-patch's file is therefore byte-identical to ``cellcoadd build`` of that patch with the
-same inputs, in the same order (visit, detector), configuration and seed.
+with :func:`cellcoadd.io.api.write` (atomic) and returns a summary of a few kB. When
+the patches are too few to keep every worker busy to the end (nine patches on two
+workers), each is cut into bands of cell rows built as separate tasks and put together
+by the worker that writes the file (the cells never come here). A patch's file is
+therefore byte-identical to ``cellcoadd build`` of that patch with the same inputs, in
+the same order (visit, detector), configuration and seed.
 
 Failures are retried (``retries`` times: a damaged file, a worker killed, a lost
 connection), then recorded as failed with the reason; the other patches go on. See
@@ -38,6 +41,7 @@ from cellcoadd.geometry.skymap import SkyMap
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.io.exposures.index import ExposureIndex, IndexedExposure, file_sha256
 from cellcoadd.model.build_config import BuildConfig
+from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.pipelines.ledger import Ledger, RunLock, config_hash, patch_signature
 from cellcoadd.pipelines.run_report import write_report
 
@@ -156,20 +160,15 @@ class PatchTask:
     output: str
 
 
-def build_patch_task(task: PatchTask) -> dict[str, Any]:
-    """Build one patch and write its file (in a worker): the summary of what it did.
+def _task_inputs(task: PatchTask) -> list[Any]:
+    """The task's inputs as described in the index (no header parsed), after checking
+    that every file is still the one indexed.
 
     Raises
     ------
     InputError
         When an input file changed since it was indexed (names the file).
-    CellBuildError, CellCoaddFormatError
-        From the build or the reads (naming the cell and the file).
     """
-    from cellcoadd.builder import build_patch
-    from cellcoadd.io.api import write
-
-    wall, cpu = time.perf_counter(), time.process_time()
     with ExposureIndex(task.index_path, readonly=True) as index:
         rows = index.by_ids(task.inputs)
     for row in rows:
@@ -180,10 +179,50 @@ def build_patch_task(task: PatchTask) -> dict[str, Any]:
                     f"input (visit={row.visit}, detector={row.detector}): {reason} since it "
                     f"was indexed in {task.index_path}; run `cellcoadd index` again"
                 )
+    return [row.described() for row in rows]
+
+
+def build_part_task(
+    task: PatchTask, cells: tuple[tuple[int, int], ...] | None = None
+) -> tuple[PatchCoadd, dict[str, Any]]:
+    """Build ``cells`` of the task's patch (all when None), in a worker: the partial patch
+    (each cell bit-identical to the same cell of the whole patch) and what it cost.
+
+    Raises
+    ------
+    InputError
+        When an input file changed since it was indexed (names the file).
+    CellBuildError, CellCoaddFormatError
+        From the build or the reads (naming the cell and the file).
+    """
+    from cellcoadd.builder import build_patch
+
+    wall, cpu = time.perf_counter(), time.process_time()
+    inputs = _task_inputs(task)
     config = BuildConfig.model_validate_json(task.config_json)
-    coadd = build_patch(
-        task.patch, [row.described() for row in rows], config, task.seed, progress=False
-    )
+    coadd = build_patch(task.patch, inputs, config, task.seed, progress=False, cells=cells)
+    cost = {
+        "inputs": len(inputs),
+        "wall_s": time.perf_counter() - wall,
+        "cpu_s": time.process_time() - cpu,
+        "peak_rss_mb": _peak_rss_mb(),
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+    }
+    return coadd, cost
+
+
+def write_patch_task(task: PatchTask, *parts: tuple[PatchCoadd, dict[str, Any]]) -> dict[str, Any]:
+    """Put the parts of the task's patch together, write its file (atomically, in a
+    worker) and return the summary of what it did (a few kB).
+
+    ``wall_s`` and ``cpu_s`` add up the parts' and the writing's (worker seconds);
+    ``peak_rss_mb`` is the largest of the processes involved.
+    """
+    from cellcoadd.builder.patch import merge_patch_parts
+    from cellcoadd.io.api import write
+
+    wall, cpu = time.perf_counter(), time.process_time()
+    coadd = parts[0][0] if len(parts) == 1 else merge_patch_parts([part for part, _ in parts])
     write(coadd, task.output, overwrite=True)
     checksum = file_sha256(task.output)
     used: set[tuple[int, int]] = set()
@@ -198,6 +237,7 @@ def build_patch_task(task: PatchTask) -> dict[str, Any]:
                 status = str(getattr(record.status, "value", record.status))
                 rejected[status] = rejected.get(status, 0) + 1
     inner = set(coadd.inner_cell_indices)
+    costs = [cost for _, cost in parts]
     return {
         "patch": list(task.patch.index),
         "output": task.output,
@@ -207,15 +247,46 @@ def build_patch_task(task: PatchTask) -> dict[str, Any]:
         "inner_cells": len(inner),
         "empty_cells": sum(cell.is_empty for cell in coadd.cells.values()),
         "empty_inner_cells": sum(coadd.cells[i].is_empty for i in inner),
-        "inputs": len(rows),
+        "inputs": costs[0]["inputs"],
         "inputs_used": len(used),
         "rejected_records": dict(sorted(rejected.items())),
         "depth": depth,
-        "wall_s": round(time.perf_counter() - wall, 4),
-        "cpu_s": round(time.process_time() - cpu, 4),
-        "peak_rss_mb": round(_peak_rss_mb(), 1),
+        "parts": len(parts),
+        "wall_s": round(sum(c["wall_s"] for c in costs) + time.perf_counter() - wall, 4),
+        "cpu_s": round(sum(c["cpu_s"] for c in costs) + time.process_time() - cpu, 4),
+        "peak_rss_mb": round(max(_peak_rss_mb(), *(c["peak_rss_mb"] for c in costs)), 1),
         "worker": f"{socket.gethostname()}:{os.getpid()}",
     }
+
+
+def build_patch_task(task: PatchTask) -> dict[str, Any]:
+    """Build one patch and write its file (in a worker): the summary of what it did.
+
+    Raises
+    ------
+    InputError
+        When an input file changed since it was indexed (names the file).
+    CellBuildError, CellCoaddFormatError
+        From the build or the reads (naming the cell and the file).
+    """
+    return write_patch_task(task, build_part_task(task))
+
+
+def parts_per_patch(patches: int, workers: int, most: int = 8) -> int:
+    """Into how many parts to cut each patch so that ``patches`` x parts tasks keep
+    ``workers`` busy to the end: the fewest (each part maps the patch's inputs again)
+    for which equal tasks would leave the workers >= 95% busy, at most ``most``.
+
+    Nine patches on two workers give two parts each (18 tasks: no worker idles while the
+    other builds the ninth patch); 100 patches on two workers, one.
+    """
+    if patches <= 0 or workers <= 1:
+        return 1
+    for parts in range(1, most + 1):
+        tasks = patches * parts
+        if tasks / (workers * -(-tasks // workers)) >= 0.95:
+            return parts
+    return most
 
 
 def _peak_rss_mb() -> float:
@@ -486,17 +557,14 @@ def dask_cluster(workers: int) -> tuple[Any, Callable[[], None]]:
     distributed = _import_distributed()
     import dask
 
-    with dask.config.set(
-        {
-            "distributed.scheduler.allowed-failures": 0,
-            "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432,
-        }
-    ):
+    from cellcoadd.builder.executors import DASK_WORKER_CONFIG
+
+    with dask.config.set({**DASK_WORKER_CONFIG, "distributed.scheduler.allowed-failures": 0}):
         cluster = distributed.LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=None,
+            dashboard_address=":0",  # any free port: no clash with another cluster
         )
         client = distributed.Client(cluster)
 
@@ -528,8 +596,13 @@ def _run_on_dask(
     scheduler: object | None,
     progress: bool,
 ) -> None:
-    """Build the patches as dask tasks, one per patch; failed tasks are submitted again
+    """Build the patches as dask tasks, one per patch or, when there are too few patches
+    to keep every worker busy to the end, a few per patch (:func:`parts_per_patch`: bands
+    of cell rows built by :func:`build_part_task`, gathered and written by
+    :func:`write_patch_task` on a worker, never here); a failed patch is submitted again
     (``retries`` times); results are recorded as they arrive."""
+    from cellcoadd.builder.patch import blocks_of
+
     distributed = _import_distributed()
     if scheduler is None:
         client, close = dask_cluster(workers)
@@ -541,11 +614,26 @@ def _run_on_dask(
     try:
         attempts: dict[str, int] = {}
         meta: dict[str, tuple[PatchTask, dict[str, Any]]] = {}
+        n_parts = parts_per_patch(len(tasks), sum(client.nthreads().values()))
 
         def submit(task: PatchTask, record: dict[str, Any], attempt: int) -> Any:
             px, py = task.patch.index
             key = f"cellcoadd-patch-{task.patch.tract.id}-{px}-{py}-{attempt}-{os.urandom(4).hex()}"
-            future = client.submit(build_patch_task, task, key=key, pure=False)
+            if n_parts == 1:
+                future = client.submit(build_patch_task, task, key=key, pure=False)
+            else:
+                # the parts stay on the workers: the one writing the patch gathers them
+                parts = [
+                    client.submit(
+                        build_part_task,
+                        task,
+                        tuple(c.index for c in cells),
+                        key=f"{key}-part{k}",
+                        pure=False,
+                    )  # fmt: skip
+                    for k, cells in enumerate(blocks_of(task.patch.cells, n_parts))
+                ]
+                future = client.submit(write_patch_task, task, *parts, key=key, pure=False)
             attempts[future.key] = attempt
             meta[future.key] = (task, record)
             return future

@@ -48,6 +48,7 @@ import numpy as np
 from cellcoadd.errors import CellCoaddError, CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.wcs_utils import canonical_wcs
+from cellcoadd.io._files.path_gate import gate_read, gate_write
 from cellcoadd.model.manifest import Manifest, ManifestEntry
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource
@@ -381,14 +382,16 @@ class ExposureIndex:
         self, path: str | os.PathLike[str], *, readonly: bool = False, nside: int = DEFAULT_NSIDE
     ):
         self.path = os.fspath(path)
-        if readonly and not os.path.isfile(self.path):
+        if readonly and not os.path.lexists(self.path):
             raise CellCoaddFormatError(self.path, "no such exposure index")
+        # a FIFO, a device or a directory is refused before SQLite opens it
+        resolved = (gate_read if readonly else gate_write)(self.path, what="exposure index")
         try:
             if readonly:
-                uri = f"file:{os.path.abspath(self.path)}?mode=ro"
+                uri = f"{Path(resolved).as_uri()}?mode=ro"  # percent-encoded: '?', '#' kept
                 self._db = sqlite3.connect(uri, uri=True, timeout=60.0)
             else:
-                self._db = sqlite3.connect(self.path, timeout=60.0)
+                self._db = sqlite3.connect(resolved, timeout=60.0)
                 self._db.executescript(_SCHEMA)
             self._db.execute("PRAGMA foreign_keys = ON")
             rows = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
