@@ -92,7 +92,11 @@ def _header_cards_primary(path) -> list[bytes]:
 
 
 def _classic(patch, path):
-    fits_format._write_fits(patch, str(path), compress=False, direct=False)
+    cells = list(patch.cells.values())
+    fits_format._write_fits(
+        patch.metadata, cells, iter(cells), str(path), compress=False, direct=False,
+        present=cells[0].plane_names,
+    )  # fmt: skip
     stabilise_fits_checksums(path)
 
 

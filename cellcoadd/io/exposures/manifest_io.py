@@ -192,6 +192,8 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     # mapping_tolerance: pixels
     mapping_tolerance = 0.001
     noise_variance = "background"
+    # psf_corners: also store the coadd PSF at the 4 corner pixels of each cell's inner box
+    psf_corners = false
     <BLANKLINE>
     """
     lines = ["# cellcoadd build configuration (BuildConfig); see docs/inputs.md", ""]
