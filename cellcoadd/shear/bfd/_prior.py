@@ -260,7 +260,9 @@ class TemplatePrior:
             Add every copy's mirror image (``u -> -u``), the pair at half the copy's
             weight: a parity-symmetric prior, at twice the copies (the cost of ``P, Q,
             R`` doubles; building the prior costs the same, the mirrors' moments being
-            sign flips of the copies').
+            sign flips of the copies'). Off by default: for galaxies without handedness
+            (elliptical profiles) the rotations already make the prior parity-symmetric
+            to well below its noise (docs/validation.md, "Mirror images in the prior").
         """
         cov_even = np.asarray(cov_even, dtype=np.float64)
         cov_odd = np.asarray(cov_odd, dtype=np.float64)
