@@ -47,8 +47,16 @@ class BfdPosterior:
     cpu_seconds: float
 
 
-def bfd_posterior(settings: ValidationSettings, catalogue: PairCatalogue) -> BfdPosterior:
+def bfd_posterior(
+    settings: ValidationSettings,
+    catalogue: PairCatalogue,
+    templates: list[bfd.KData] | None = None,
+) -> BfdPosterior:
     """The template prior for the targets' mean moment covariance, and ``P, Q, R``.
+
+    ``templates``: the run's (:func:`~cellcoadd.pipelines.stamp_pairs.bfd_templates`),
+    made here when not given (then included in ``cpu_seconds``); a comparison of prior
+    settings on the same pairs passes them to make them once.
 
     Raises
     ------
@@ -62,12 +70,14 @@ def bfd_posterior(settings: ValidationSettings, catalogue: PairCatalogue) -> Bfd
     cov_even = np.mean(np.concatenate([plus["cov_even"][good], minus["cov_even"][good]]), axis=0)
     cov_odd = np.mean(np.concatenate([plus["cov_odd"][good], minus["cov_odd"][good]]), axis=0)
     start = time.process_time()
-    templates = bfd_templates(settings, bfd_noise_sigma(settings), catalogue.index.tolist())
+    if templates is None:
+        templates = bfd_templates(settings, bfd_noise_sigma(settings), catalogue.index.tolist())
     # templates that are the targets themselves already have the targets' orientations
     rotations = 1 if settings.bfd_template_sample == "targets" else 8
     prior = bfd.TemplatePrior.from_templates(
-        templates, cov_even, cov_odd, n_rotations=rotations, snr_range=settings.bfd_snr_range
-    )
+        templates, cov_even, cov_odd, n_rotations=rotations, snr_range=settings.bfd_snr_range,
+        mirror=settings.bfd_mirror,
+    )  # fmt: skip
     pqrs = []
     for member in (plus, minus):
         pqr = prior.pqr(member["even"])

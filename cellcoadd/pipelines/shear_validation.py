@@ -239,6 +239,7 @@ def validate_shear(
     bfd_templates: int = 100,
     bfd_template_sample: Literal["independent", "targets"] = "independent",
     bfd_oversample: int = BFD_OVERSAMPLE,
+    bfd_mirror: bool = False,
     checkpoint: str | os.PathLike[str] | None = None,
     checkpoint_every: int = 1000,
 ) -> dict[str, Any]:
@@ -307,6 +308,10 @@ def validate_shear(
         :data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`, 4: accurate
         shear derivatives for small galaxies; 1, the stamp's own FFT grid, biases m1 by
         a few per cent; see ``docs/validation.md``).
+    bfd_mirror : bool
+        Add each template copy's mirror image to the BFD prior (off: on the simulated
+        population it changes m1, c1, c2 by < 5e-5 at twice the cost of P, Q, R; see
+        ``docs/validation.md``, "Mirror images in the prior").
     checkpoint : path-like, optional
         File the measured pairs are saved to every ``checkpoint_every`` pairs; an
         existing one of the same settings is resumed (see :func:`run_pairs`).
@@ -353,6 +358,7 @@ def validate_shear(
         bfd_templates=bfd_templates,
         bfd_template_sample=bfd_template_sample,
         bfd_oversample=bfd_oversample,
+        bfd_mirror=bfd_mirror,
     )
     start = time.perf_counter()
     measured = run_pairs(

@@ -120,6 +120,12 @@ class ValidationSettings(BaseModel):
         The BFD templates: ``bfd_templates`` objects of an independent sample, or the
         targets themselves unsheared (a prior that is exactly the targets' population:
         the high-S/N check of docs/validation.md).
+    bfd_mirror : bool
+        Add each template copy's mirror image to the BFD prior (half weight each:
+        ``TemplatePrior.from_templates(..., mirror=True)``), making it parity-symmetric.
+        Off by default: on the simulated (elliptical exponential) galaxies it moves m1,
+        c1, c2 by < 5e-5 and leaves the prior's sampling noise as it is, at twice the
+        cost of ``P, Q, R`` (docs/validation.md, "Mirror images in the prior").
     anacal_sigma : float
         Scale (arcsec) of AnaCal's FPFS shapelet kernel.
     """
@@ -145,6 +151,7 @@ class ValidationSettings(BaseModel):
     bfd_templates: int = Field(100, ge=1)
     bfd_oversample: int = Field(BFD_OVERSAMPLE, ge=1, le=8)
     bfd_template_sample: Literal["independent", "targets"] = "independent"
+    bfd_mirror: bool = False
     anacal_sigma: float = Field(0.8, gt=0.0, lt=3.0, description="arcsec")
 
     @model_validator(mode="before")

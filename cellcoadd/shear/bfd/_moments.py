@@ -44,6 +44,7 @@ from cellcoadd.errors import BfdError
 __all__ = [
     "DEFAULT_OVERSAMPLE",
     "EVEN_NAMES",
+    "MIRROR_SIGNS",
     "ODD_NAMES",
     "KData",
     "KSigmaWeight",
@@ -60,6 +61,16 @@ __all__ = [
 EVEN_NAMES: tuple[str, ...] = ("F", "R", "E1", "E2")
 #: Names of the odd (centroid) moments, nulled by choosing the centre.
 ODD_NAMES: tuple[str, ...] = ("X", "Y")
+
+#: Signs ``MIRROR_SIGNS[a, d]`` of moment ``a`` (``F, R, E1, E2, X, Y``), term ``d``
+#: (``value, d/dg1, d/dg2, d2/dg1^2, d2/dg1dg2, d2/dg2^2``) under the mirror ``u -> -u``
+#: (:meth:`KData.mirrored`): the coefficients are even in ``k_u`` except ``E2 ~ k_u k_v``
+#: and ``X ~ i k_u``, and the mirror of the object sheared by ``(g1, g2)`` is the mirror
+#: image sheared by ``(g1, -g2)``, which flips the odd powers of ``g2``.
+MIRROR_SIGNS: np.ndarray = np.outer(
+    [1.0, 1.0, 1.0, -1.0, -1.0, 1.0], [1.0, 1.0, -1.0, 1.0, -1.0, 1.0]
+)
+MIRROR_SIGNS.flags.writeable = False
 
 #: Default k-space oversampling (zero-padding factor) of :func:`fourier_data` and
 #: :func:`bfd_moments`: the smallest whose high-S/N shear check agrees with the converged
@@ -130,6 +141,15 @@ class KData:
         """The same object seen from an origin moved by ``offset = (du, dv)`` arcsec."""
         du, dv = np.asarray(offset, dtype=np.float64)
         return replace(self, values=self.values * np.exp(1j * (self.kx * du + self.ky * dv)))
+
+    def mirrored(self) -> KData:
+        """The mirror image ``I(u, v) -> I(-u, v)`` (about the ``v`` axis of the origin).
+
+        Its transform at ``(k_u, k_v)`` is the original's at ``(-k_u, k_v)``: the same
+        samples at negated ``k_u``. Its moments and their shear derivatives are the
+        original's times :data:`MIRROR_SIGNS`.
+        """
+        return replace(self, kx=-self.kx)
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,6 +15,15 @@ dependence of it. The positions are a square grid of step ``shift_step`` in the 
 odd-moment space, ``x0 = J_t^-1 L z`` (``L L^T = C_odd``, ``J_t`` the template's
 :func:`~cellcoadd.shear.bfd.centroid_jacobian`), ``|z| <= shift_radius``.
 
+With ``mirror`` every copy also enters as its mirror image ``u -> -u`` (the template's
+mirror, at the mirrored position), each of the pair at half the weight: the unlensed
+population BFD assumes is invariant under rotation *and* parity, and the rotations alone
+make a finite template set isotropic but not parity-symmetric. The mirror's moments are
+the copy's times :data:`~cellcoadd.shear.bfd.MIRROR_SIGNS` (``E2``, ``X`` and the odd
+powers of ``g2`` change sign), so the mirrored copies cost no Fourier sums; for a
+parity-symmetric covariance the prior's ``P, Q, R`` of a target and of its mirror image
+(``E2 -> -E2``) then differ exactly by the signs of ``Q_2`` and ``R_12``.
+
 ``Q = dP/dg`` and ``R = d2P/dg2`` at ``g = 0`` follow analytically from the template
 moments' shear derivatives (:func:`~cellcoadd.shear.bfd.moment_coefficients`)::
 
@@ -43,6 +52,7 @@ import numpy as np
 
 from cellcoadd.errors import BfdError
 from cellcoadd.shear.bfd._moments import (
+    MIRROR_SIGNS,
     KData,
     Moments,
     centroid_jacobian,
@@ -106,6 +116,26 @@ def _half_plane(data: KData) -> KData:
     values = np.where(half, 2.0, 1.0)[keep] * data.values[keep]
     noise = None if data.noise is None else data.noise[keep]
     return replace(data, kx=kx[keep], ky=ky[keep], values=values, noise=noise)
+
+
+def _template_copies(
+    data: KData,
+    qx: np.ndarray,
+    qy: np.ndarray,
+    shear: tuple[float, float],
+    to_x0: np.ndarray,
+    zi: np.ndarray,
+    grid: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Moments (and shear derivatives) of a template's copies sheared by ``shear``: on the
+    position grid, shape ``(r * s, 6, 6)``, and centred, shape ``(r, 4, 6)``."""
+    a_inv = _inverse_shear(shear)
+    sx = a_inv[0, 0] * qx + a_inv[0, 1] * qy
+    sy = a_inv[1, 0] * qx + a_inv[1, 1] * qy
+    coeff = moment_coefficients(sx, sy, data.weight, derivatives=True)  # (6,6,r,k)
+    coeff = coeff * data.values
+    shifted = _shifted_moments(coeff, qx, qy, to_x0, zi, grid)
+    return shifted, np.real(coeff[:4].sum(-1)).transpose(2, 0, 1)
 
 
 def _shifted_moments(
@@ -201,6 +231,7 @@ class TemplatePrior:
         snr_range: tuple[float, float] | None = (5.0, 50.0),
         template_weights: Sequence[float] | None = None,
         shear: tuple[float, float] = (0.0, 0.0),
+        mirror: bool = False,
     ) -> TemplatePrior:
         """The prior from deep templates, for targets with moment covariance ``cov_*``.
 
@@ -225,6 +256,13 @@ class TemplatePrior:
         shear : (g1, g2)
             Build the prior for templates sheared by ``g`` (moments exact in ``g``; the
             derivatives are then with respect to a further shear). For tests.
+        mirror : bool
+            Add every copy's mirror image (``u -> -u``), the pair at half the copy's
+            weight: a parity-symmetric prior, at twice the copies (the cost of ``P, Q,
+            R`` doubles; building the prior costs the same, the mirrors' moments being
+            sign flips of the copies'). Off by default: for galaxies without handedness
+            (elliptical profiles) the rotations already make the prior parity-symmetric
+            to well below its noise (docs/validation.md, "Mirror images in the prior").
         """
         cov_even = np.asarray(cov_even, dtype=np.float64)
         cov_odd = np.asarray(cov_odd, dtype=np.float64)
@@ -247,7 +285,8 @@ class TemplatePrior:
         z = zi[grid].T  # (positions, 2)
         angles = np.pi * np.arange(n_rotations) / n_rotations
         cos, sin = np.cos(angles), np.sin(angles)
-        a_inv = _inverse_shear(shear)
+        _inverse_shear(shear)  # refuse |g| >= 1 before any work
+        n_parity = 2 if mirror else 1
         moments, weights, centred = [], [], []
         for template, weight in zip(templates, tw, strict=True):
             m0 = measure_moments(template)
@@ -257,25 +296,32 @@ class TemplatePrior:
             # Rotated wavenumbers q = R k, shape (n_rot, 2, n_k).
             qx = cos[:, None] * data.kx - sin[:, None] * data.ky
             qy = sin[:, None] * data.kx + cos[:, None] * data.ky
-            sx = a_inv[0, 0] * qx + a_inv[0, 1] * qy
-            sy = a_inv[1, 0] * qx + a_inv[1, 1] * qy
-            coeff = moment_coefficients(sx, sy, data.weight, derivatives=True)  # (6,6,r,k)
-            coeff = coeff * data.values
             # The position grid comes from the unsheared copies (the same for any shear).
             unsheared = np.real(moment_coefficients(qx, qy, data.weight)[:4] @ data.values)
             jac = centroid_jacobian(unsheared.T)  # (r, 2, 2)
             if np.any(np.linalg.det(jac) <= 0.0):
                 raise BfdError("a template has a non-positive centroid jacobian")
             to_x0 = np.linalg.solve(jac, chol_odd[None])  # (r, 2, 2): x0 = J^-1 L z
-            moments.append(_shifted_moments(coeff, qx, qy, to_x0, zi, grid))
+            copies, centres = _template_copies(data, qx, qy, shear, to_x0, zi, grid)
+            moments.append(copies)
+            centred.append(centres)
+            if mirror:
+                # The mirror of the template sheared by g is the mirror image of the
+                # template sheared by (g1, -g2): the same copies when g2 = 0.
+                if shear[1] != 0.0:
+                    copies, centres = _template_copies(
+                        data, qx, qy, (shear[0], -shear[1]), to_x0, zi, grid
+                    )
+                moments.append(copies * MIRROR_SIGNS)
+                centred.append(centres * MIRROR_SIGNS[:4])
             area = np.abs(np.linalg.det(to_x0)) * shift_step**2
-            weights.append(np.repeat(area * weight / n_rotations, len(z)))
-            centred.append(np.real(coeff[:4].sum(-1)).transpose(2, 0, 1))
+            copy_weights = np.repeat(area * weight / (n_rotations * n_parity), len(z))
+            weights.append(np.tile(copy_weights, n_parity))
         return cls(
             moments=np.concatenate(moments),
             weights=np.concatenate(weights),
             centred=np.concatenate(centred),
-            centred_weights=np.repeat(tw / n_rotations, n_rotations),
+            centred_weights=np.repeat(tw / (n_rotations * n_parity), n_rotations * n_parity),
             cov_even=cov_even,
             cov_odd=cov_odd,
             snr_range=snr_range,
