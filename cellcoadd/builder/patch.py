@@ -182,7 +182,9 @@ def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Iterator[list
     failure, cancel what has not started and raise a CellBuildError naming the cell."""
     workers = max(1, int(getattr(pool, "_max_workers", 1)))
     window = WINDOW_PER_WORKER * workers
-    submitted: list[tuple[Future, list[Cell]]] = []
+    # every block submitted, by number, with its future until its result is taken: a future
+    # holds its result, so one kept here would keep the block's pixels for the whole build
+    submitted: list[tuple[Future | None, list[Cell]]] = []
     done: dict[int, list[CellCoadd]] = {}  # finished blocks waiting for earlier ones
     numbers: dict[Future, int] = {}
     yielded = 0
@@ -199,19 +201,24 @@ def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Iterator[list
             if yielded not in done:
                 finished, _ = wait(list(numbers), return_when=FIRST_COMPLETED)
                 for future in sorted(finished, key=numbers.__getitem__):
-                    number = numbers.pop(future)
+                    number = numbers[future]
                     done[number] = _received(future, submitted, number, workers)
+                    del numbers[future]
+                    submitted[number] = (None, submitted[number][1])  # let its result go
                 continue
             yield done.pop(yielded)
             yielded += 1
     except BaseException:
-        for future, _ in submitted:
+        for future in numbers:
             future.cancel()
         raise
 
 
 def _received(
-    future: Future, submitted: list[tuple[Future, list[Cell]]], number: int, workers: int
+    future: Future,
+    submitted: Sequence[tuple[Future | None, list[Cell]]],
+    number: int,
+    workers: int,
 ) -> list[CellCoadd]:
     """The coadds of finished block ``number``, or the CellBuildError naming its cell."""
     cells = submitted[number][1]
@@ -285,9 +292,12 @@ def _replicate(client: Any, futures: list[Any]) -> None:
 
 
 def _died_message(
-    submitted: list[tuple[Future, list[Cell]]], err: BaseException, workers: int
+    submitted: Sequence[tuple[Future | None, list[Cell]]], err: BaseException, workers: int
 ) -> str:
     """Name the cell a dead worker process was building, as far as it can be known.
+
+    ``submitted`` lists every block submitted, in order, with its future (None once its
+    result was taken: that block was built).
 
     A broken process pool fails every unfinished future at once without saying which
     task killed its worker. Tasks start in submission order, so the task that died is one
@@ -305,7 +315,9 @@ def _died_message(
     )
 
 
-def _broken_or_pending(future: Future) -> bool:
+def _broken_or_pending(future: Future | None) -> bool:
+    if future is None:  # its cells were received
+        return False
     if not future.done():
         return True
     return not future.cancelled() and isinstance(future.exception(), BrokenExecutor)
