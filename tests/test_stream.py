@@ -10,6 +10,7 @@ import os
 import weakref
 from pathlib import Path
 
+import numpy as np
 import pytest
 from coadd_factory import TINY_BUILD, tiny_exposures, tiny_patch
 
@@ -57,36 +58,79 @@ def test_blocks_list_the_cells_in_file_order(tiny, monkeypatch):
             assert flat == sorted(cell.index for cell in patch.cells)
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_a_streamed_write_holds_a_few_blocks_not_the_patch(tmp_path, tiny, monkeypatch, workers):
-    """Cells of one column per block: with the pool's window of blocks, the cells alive
-    while the file is written stay below that window's, far below the patch's count."""
+@pytest.fixture(scope="module")
+def dask_client():
+    distributed = pytest.importorskip("distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        yield client
+
+
+@pytest.mark.parametrize("workers", [1, 2, "dask"])
+def test_a_streamed_write_holds_a_few_blocks_not_the_patch(
+    tmp_path, tiny, monkeypatch, request, workers
+):
+    """Cells of one column per block: with the window of blocks (a pool's, or a dask
+    cluster's of 2 workers), the cells alive here while the file is written, handed on or
+    still to come, stay below that window's, far below the patch's count; so do their
+    pixels (the arrays received from a worker, which anything holding a worker's result,
+    e.g. its future, would keep after the cell itself is gone)."""
     patch, good, _ = tiny
     monkeypatch.setattr(patch_module, "MAX_BLOCK_CELLS", 1)  # one cell per block
     monkeypatch.setattr(fits_format, "_BATCH", 2)  # cells the writers take together
     monkeypatch.setattr(hdf5_format, "_BATCH", 2)
-    alive: list[weakref.ref] = []
-    most = 0
+    where = (
+        {"scheduler": request.getfixturevalue("dask_client")}
+        if workers == "dask"
+        else {"workers": workers}
+    )
+    # every cell made here (from a worker's result, or built here), from its making on
+    alive: dict[str, list[weakref.ref]] = {"cells": [], "images": []}
+    most = dict.fromkeys(alive, 0)
+    unparcel = patch_module._unparcel
+
+    def recorded(cell, built):
+        coadd = unparcel(cell, built)
+        alive["cells"].append(weakref.ref(coadd))
+        alive["images"].append(weakref.ref(_first_array(coadd.image)))
+        return coadd
+
+    monkeypatch.setattr(patch_module, "_unparcel", recorded)
 
     def watched(stream):
-        nonlocal most
         for cell in stream:
-            alive.append(weakref.ref(cell))
             gc.collect()
-            most = max(most, sum(ref() is not None for ref in alive))
+            for what, refs in alive.items():
+                most[what] = max(most[what], sum(ref() is not None for ref in refs))
             yield cell
             del cell
 
     n_cells = len(patch.cells)
     for name in ("patch.fits", "patch.h5"):
-        alive.clear()
-        with stream_patch(patch, good, TINY_BUILD, 1, progress=False, workers=workers) as stream:
+        for refs in alive.values():
+            refs.clear()
+        most.update(dict.fromkeys(most, 0))
+        with stream_patch(patch, good, TINY_BUILD, 1, progress=False, **where) as stream:
             api.write_cells(stream.metadata, watched(stream), tmp_path / name)
-        # the pool's window of blocks, the writers' own batches (HDF5: 3 of them), the cell
-        # being handed on and the block being built
-        bound = patch_module.WINDOW_PER_WORKER * workers + 3 * 2 + 2
-        assert most <= bound < n_cells, (name, most, n_cells)
+        # the window of blocks, the writers' own batches (HDF5: 3 of them), the cell being
+        # handed on and the block being built
+        n_workers = 2 if workers == "dask" else workers
+        bound = patch_module.WINDOW_PER_WORKER * n_workers + 3 * 2 + 2
+        assert max(most.values()) <= bound < n_cells, (name, most, n_cells)
         assert len(api.read(tmp_path / name)) == n_cells
+
+
+def _first_array(array: np.ndarray) -> np.ndarray:
+    """The array whose memory ``array`` views (itself if it owns it): a cell's plane may be
+    a view of the array received from a worker (unpickled arrays have their own dtype
+    instance, which ``np.asarray(..., dtype)`` answers with a view)."""
+    while isinstance(array.base, np.ndarray):
+        array = array.base
+    return array
 
 
 def test_cells_out_of_order_or_missing_leave_no_file(tmp_path, tiny):

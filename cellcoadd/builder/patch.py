@@ -21,9 +21,9 @@ geometry: unpickling an astropy WCS costs ~2 ms, remaking it 0.04 ms).
 :func:`stream_patch` gives the cells as their blocks are done, in the order of the patch
 files (sorted ``(cx, cy)``: blocks are bands of whole columns), with the patch's metadata
 known before any cell, so a writer stores each block and lets it go: the building process
-holds a few blocks, not the patch (:func:`build_patch` collects them into a
-:class:`~cellcoadd.model.patch_coadd.PatchCoadd`). A failing cell stops the build with an
-error naming the cell and carrying the worker's traceback.
+holds a few blocks, not the patch, on a process pool as on dask (:func:`build_patch`
+collects them into a :class:`~cellcoadd.model.patch_coadd.PatchCoadd`). A failing cell
+stops the build with an error naming the cell and carrying the worker's traceback.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import traceback
-from collections.abc import Callable, Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Generator, Iterator, Sequence
 from concurrent.futures import (
     FIRST_COMPLETED,
     BrokenExecutor,
@@ -83,6 +83,9 @@ Task = tuple[list[Cell], Sequence[tuple[BuildInput, ExposureFrame | None] | int]
 Parcel = dict[str, Any]
 #: What runs one task: its cells and candidates in, their coadds (or parcels) out.
 Runner = Callable[[list[Cell], Sequence[Any]], list[Any]]
+#: The coadds of the blocks of a build, block after block in file order; closing it cancels
+#: the blocks not yet built.
+Blocks = Generator[list[CellCoadd], None, None]
 
 
 def _build_block(
@@ -175,14 +178,16 @@ def _collect(
         results[cell.index] = _unparcel(cell, coadd)
 
 
-def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Iterator[list[CellCoadd]]:
+def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Blocks:
     """Build the blocks of ``tasks`` with ``run`` on ``pool``; yield their coadds block by
     block in the order of ``tasks``. At most ``WINDOW_PER_WORKER`` blocks per worker are
     submitted and not yet yielded, so finished cells do not pile up here. On the first
     failure, cancel what has not started and raise a CellBuildError naming the cell."""
     workers = max(1, int(getattr(pool, "_max_workers", 1)))
     window = WINDOW_PER_WORKER * workers
-    submitted: list[tuple[Future, list[Cell]]] = []
+    # every block submitted, by number, with its future until its result is taken: a future
+    # holds its result, so one kept here would keep the block's pixels for the whole build
+    submitted: list[tuple[Future | None, list[Cell]]] = []
     done: dict[int, list[CellCoadd]] = {}  # finished blocks waiting for earlier ones
     numbers: dict[Future, int] = {}
     yielded = 0
@@ -199,19 +204,24 @@ def _run_on(pool: Executor, tasks: Sequence[Task], run: Runner) -> Iterator[list
             if yielded not in done:
                 finished, _ = wait(list(numbers), return_when=FIRST_COMPLETED)
                 for future in sorted(finished, key=numbers.__getitem__):
-                    number = numbers.pop(future)
+                    number = numbers[future]
                     done[number] = _received(future, submitted, number, workers)
+                    del numbers[future]
+                    submitted[number] = (None, submitted[number][1])  # let its result go
                 continue
             yield done.pop(yielded)
             yielded += 1
     except BaseException:
-        for future, _ in submitted:
+        for future in numbers:
             future.cancel()
         raise
 
 
 def _received(
-    future: Future, submitted: list[tuple[Future, list[Cell]]], number: int, workers: int
+    future: Future,
+    submitted: Sequence[tuple[Future | None, list[Cell]]],
+    number: int,
+    workers: int,
 ) -> list[CellCoadd]:
     """The coadds of finished block ``number``, or the CellBuildError naming its cell."""
     cells = submitted[number][1]
@@ -232,45 +242,78 @@ def _run_on_dask(
     tasks: Sequence[Task],
     inputs: list[tuple[BuildInput, ExposureFrame | None]],
     run: Runner,
-    results: dict[tuple[int, int], CellCoadd],
-    bar: tqdm,
-) -> None:
+) -> Blocks:
     """Build the blocks of ``tasks`` (cells, indices of their candidate inputs) with ``run``
-    on the dask cluster of ``client`` into ``results``; on the first failure, cancel the blocks
-    not yet built and raise a CellBuildError naming the cell.
+    on the dask cluster of ``client``; yield their coadds block by block in the order of
+    ``tasks``. On the first failure, cancel the blocks not yet built and raise a
+    CellBuildError naming the cell.
 
     Every input is sent once to the workers, then copied to all of them; a task's
     arguments are its cells and the futures of its inputs, which the worker resolves
-    from its own memory, so no pixels travel with a task. The inputs are released at
-    the end.
+    from its own memory, so no pixels travel with a task. At most ``WINDOW_PER_WORKER``
+    blocks per worker thread are submitted and not yet yielded; a finished block stays on
+    its worker until its turn comes, then is fetched here and released there. The inputs
+    are released at the end.
     """
     from distributed import as_completed as dask_as_completed  # optional: the dask extra
 
+    window = WINDOW_PER_WORKER * max(1, sum(client.nthreads().values()))
     # each input to one worker (hash=False: no tokenizing of pixels, keys private to this
-    # build); copying them to every worker comes after the tasks are queued, so the first
-    # blocks build during the copy instead of after it, as they would with a broadcast
+    # build); copying them to every worker comes after the first tasks are queued, so those
+    # build during the copy instead of after it, as they would with a broadcast
     table = client.scatter(inputs, hash=False)
-    pending: dict[str, tuple[Any, list[Cell]]] = {}
+    futures: dict[int, Any] = {}  # submitted and not yet yielded, by block number
+    numbers: dict[str, int] = {}  # block number of each future not yet seen finished
+    finished: set[int] = set()
+    completed = dask_as_completed()
+    yielded = 0
     try:
-        for cells, indices in tasks:
-            candidates = [table[i] for i in indices]
-            future = client.submit(run, cells, candidates, pure=False)
-            pending[future.key] = (future, cells)
-        _replicate(client, table)
-        for future in dask_as_completed([future for future, _ in pending.values()]):
-            _, cells = pending.pop(future.key)  # dropped once read: frees the worker's copy
-            try:
-                _collect(cells, future.result(), results)
-            except CellBuildError:
-                raise
-            except Exception as err:  # e.g. KilledWorker: names the block's first cell
-                raise _cell_failed(cells[0], err) from err
-            bar.update(len(cells))
+        while yielded < len(tasks):
+            first = not futures and yielded == 0
+            while len(futures) + yielded < len(tasks) and len(futures) < window:
+                number = len(futures) + yielded
+                cells, indices = tasks[number]
+                futures[number] = client.submit(run, cells, [table[i] for i in indices], pure=False)
+                numbers[futures[number].key] = number
+                completed.add(futures[number])
+            if first:
+                _replicate(client, table)
+            while yielded not in finished:
+                finished.add(_dask_finished(next(completed), numbers, tasks))
+            finished.remove(yielded)
+            # its last future dropped here: the worker lets its copy go
+            coadds = _dask_received(futures.pop(yielded), tasks[yielded][0])
+            yield coadds
+            del coadds
+            yielded += 1
     except BaseException:
-        client.cancel([future for future, _ in pending.values()])
+        client.cancel(list(futures.values()))
         raise
     finally:
+        completed.clear()
         client.cancel(table)
+
+
+def _dask_finished(future: Any, numbers: dict[str, int], tasks: Sequence[Task]) -> int:
+    """The number of the block whose dask ``future`` is done (taken out of ``numbers``);
+    the CellBuildError naming its cell if it failed (now, not when its turn comes)."""
+    number = numbers.pop(future.key)
+    if future.status != "finished":
+        _dask_received(future, tasks[number][0])
+    return number
+
+
+def _dask_received(future: Any, cells: list[Cell]) -> list[CellCoadd]:
+    """The coadds of the block of ``cells`` from its dask ``future``, or the CellBuildError
+    naming its cell."""
+    try:
+        results: dict[tuple[int, int], CellCoadd] = {}
+        _collect(cells, future.result(), results)
+        return list(results.values())
+    except CellBuildError:
+        raise
+    except Exception as err:  # e.g. KilledWorker: names the block's first cell
+        raise _cell_failed(cells[0], err) from err
 
 
 def _replicate(client: Any, futures: list[Any]) -> None:
@@ -285,9 +328,12 @@ def _replicate(client: Any, futures: list[Any]) -> None:
 
 
 def _died_message(
-    submitted: list[tuple[Future, list[Cell]]], err: BaseException, workers: int
+    submitted: Sequence[tuple[Future | None, list[Cell]]], err: BaseException, workers: int
 ) -> str:
     """Name the cell a dead worker process was building, as far as it can be known.
+
+    ``submitted`` lists every block submitted, in order, with its future (None once its
+    result was taken: that block was built).
 
     A broken process pool fails every unfinished future at once without saying which
     task killed its worker. Tasks start in submission order, so the task that died is one
@@ -305,7 +351,9 @@ def _died_message(
     )
 
 
-def _broken_or_pending(future: Future) -> bool:
+def _broken_or_pending(future: Future | None) -> bool:
+    if future is None:  # its cells were received
+        return False
     if not future.done():
         return True
     return not future.cancelled() and isinstance(future.exception(), BrokenExecutor)
@@ -449,10 +497,11 @@ def stream_patch(
     PatchStream
         Its ``metadata`` (known before any cell) and ``indices``; iterating it builds the
         cells and yields them in sorted ``(cx, cy)`` order, the order of the patch files,
-        block after block: on a process pool at most
-        ``WINDOW_PER_WORKER * workers`` blocks (of at most :data:`MAX_BLOCK_CELLS` cells)
-        are held here at once, on dask the whole patch. Use it as a context manager (or
-        call ``close``): leaving it stops the workers.
+        block after block: at most ``WINDOW_PER_WORKER`` blocks (of at most
+        :data:`MAX_BLOCK_CELLS` cells) per worker (process, or dask worker thread) are
+        submitted and not yet handed on (on dask, a finished block waits for its turn on
+        its worker and is fetched here then). Use it as a context manager (or call
+        ``close``): leaving it stops the workers.
     """
     config = config or BuildConfig()
     chosen = _chosen_cells(patch, cells)
@@ -559,29 +608,32 @@ def _built_blocks(
     elsewhere = pool is not None or client is not None
     run = functools.partial(_build_block, build.settings, parcels=elsewhere)
     bar = tqdm(total=len(cells), desc=f"patch {patch.index}", unit="cell", disable=not progress)
+    if client is not None:
+        built = _run_on_dask(client, tasks, framed, run)
+    elif pool is not None:
+        built = _run_on(pool, tasks, run)
+    else:
+        built = _run_here(tasks, run)
     try:
-        if client is not None:
-            results: dict[tuple[int, int], CellCoadd] = {}
-            _run_on_dask(client, tasks, framed, run, results, bar)
-            for block, _ in tasks:
-                yield [results.pop(cell.index) for cell in block]
-        elif pool is None:
-            for block, candidates in tasks:
-                built = run(block, candidates)
-                coadds = [_unparcel(c, b) for c, b in zip(block, built, strict=True)]
-                del built
+        with contextlib.closing(built):  # leaving early cancels what was submitted
+            for (block, _), coadds in zip(tasks, built, strict=False):
                 bar.update(len(block))
                 yield coadds
                 del coadds  # handed on: not held while the next block is built
-        else:
-            for (block, _), coadds in zip(tasks, _run_on(pool, tasks, run), strict=False):
-                bar.update(len(block))
-                yield coadds
-                del coadds
     finally:
         bar.close()
         if release is not None:
             release()
+
+
+def _run_here(tasks: Sequence[Task], run: Runner) -> Blocks:
+    """Build the blocks of ``tasks`` with ``run`` in this process, one after the other."""
+    for block, candidates in tasks:
+        built = run(block, candidates)
+        coadds = [_unparcel(c, b) for c, b in zip(block, built, strict=True)]
+        del built
+        yield coadds
+        del coadds  # handed on: not held while the next block is built
 
 
 def merge_patch_parts(parts: Sequence[PatchCoadd]) -> PatchCoadd:
