@@ -10,9 +10,9 @@ stored headers from the index (no header is parsed), checks that every input fil
 still the one indexed, builds the patch with :func:`~cellcoadd.builder.build_patch`
 (serially: one patch per worker at a time bounds its memory by one patch), writes it
 with :func:`cellcoadd.io.api.write` (atomic) and returns a summary of a few kB. When
-the patches are too few to keep every worker busy to the end (nine patches on two
-workers), each is cut into bands of cell rows built as separate tasks and put together
-by the worker that writes the file (the cells never come here). A patch's file is
+the patches do not share out evenly among the workers (nine patches on two), the last
+ones are cut into bands of cells built as separate tasks and put together by the worker
+that writes the file (the cells never come here). A patch's file is
 therefore byte-identical to ``cellcoadd build`` of that patch with the same inputs, in
 the same order (visit, detector), configuration and seed.
 
@@ -272,21 +272,23 @@ def build_patch_task(task: PatchTask) -> dict[str, Any]:
     return write_patch_task(task, build_part_task(task))
 
 
-def parts_per_patch(patches: int, workers: int, most: int = 8) -> int:
-    """Into how many parts to cut each patch so that ``patches`` x parts tasks keep
-    ``workers`` busy to the end: the fewest (each part maps the patch's inputs again)
-    for which equal tasks would leave the workers >= 95% busy, at most ``most``.
+def parts_per_patch(patches: int, workers: int, most: int = 8) -> list[int]:
+    """Into how many parts to cut each of ``patches`` patches, in the order they are
+    submitted (largest first), so that ``workers`` stay busy to the end.
 
-    Nine patches on two workers give two parts each (18 tasks: no worker idles while the
-    other builds the ninth patch); 100 patches on two workers, one.
+    Whole patches are the cheapest tasks (a part maps its patch's inputs again, and a
+    worker gathers the parts to write the file), so only the last ``patches % workers``
+    patches are cut, each into ``workers`` parts (at most ``most``): the whole ones keep
+    every worker busy, and the parts share the remainder out. Nine patches on two
+    workers: eight whole, the ninth in two parts (4.5 patches per worker instead of 5
+    and 4); 100 on two: all whole; one on eight: eight parts.
     """
-    if patches <= 0 or workers <= 1:
-        return 1
-    for parts in range(1, most + 1):
-        tasks = patches * parts
-        if tasks / (workers * -(-tasks // workers)) >= 0.95:
-            return parts
-    return most
+    if patches <= 0:
+        return []
+    if workers <= 1:
+        return [1] * patches
+    cut = patches % workers
+    return [1] * (patches - cut) + [min(workers, most)] * cut
 
 
 def _peak_rss_mb() -> float:
@@ -596,9 +598,9 @@ def _run_on_dask(
     scheduler: object | None,
     progress: bool,
 ) -> None:
-    """Build the patches as dask tasks, one per patch or, when there are too few patches
-    to keep every worker busy to the end, a few per patch (:func:`parts_per_patch`: bands
-    of cell rows built by :func:`build_part_task`, gathered and written by
+    """Build the patches as dask tasks, one per patch, largest first, the last ones cut into
+    parts when the patches do not share out evenly (:func:`parts_per_patch`: bands of
+    cells built by :func:`build_part_task`, gathered and written by
     :func:`write_patch_task` on a worker, never here); a failed patch is submitted again
     (``retries`` times); results are recorded as they arrive."""
     from cellcoadd.builder.patch import blocks_of
@@ -614,12 +616,20 @@ def _run_on_dask(
     try:
         attempts: dict[str, int] = {}
         meta: dict[str, tuple[PatchTask, dict[str, Any]]] = {}
-        n_parts = parts_per_patch(len(tasks), sum(client.nthreads().values()))
+        # the largest first (inputs: the cost scales with them), the cut ones last
+        tasks = sorted(tasks, key=lambda item: -len(item[0].inputs))
+        n_parts = dict(
+            zip(
+                (task.patch.index for task, _ in tasks),
+                parts_per_patch(len(tasks), sum(client.nthreads().values())),
+                strict=True,
+            )
+        )
 
         def submit(task: PatchTask, record: dict[str, Any], attempt: int) -> Any:
             px, py = task.patch.index
             key = f"cellcoadd-patch-{task.patch.tract.id}-{px}-{py}-{attempt}-{os.urandom(4).hex()}"
-            if n_parts == 1:
+            if n_parts[task.patch.index] == 1:
                 future = client.submit(build_patch_task, task, key=key, pure=False)
             else:
                 # the parts stay on the workers: the one writing the patch gathers them
@@ -631,7 +641,9 @@ def _run_on_dask(
                         key=f"{key}-part{k}",
                         pure=False,
                     )  # fmt: skip
-                    for k, cells in enumerate(blocks_of(task.patch.cells, n_parts))
+                    for k, cells in enumerate(
+                        blocks_of(task.patch.cells, n_parts[task.patch.index])
+                    )
                 ]
                 future = client.submit(write_patch_task, task, *parts, key=key, pure=False)
             attempts[future.key] = attempt
