@@ -312,9 +312,11 @@ def main() -> None:
                         "rss": _peak_worker_rss(out), "idle": idle,
                         "load": os.getloadavg()[0],
                     })  # fmt: skip
-            # peak RSS of a worker: one patch, then every patch (fresh LocalClusters)
+            # peak RSS of a worker: one whole patch each (two patches on two workers: none
+            # cut into parts), then every patch (fresh LocalClusters)
             one = work / "out-one"
-            _cli([*base, "--out-dir", str(one), "--workers", "2", "--patch", "1,1"])
+            _cli([*base, "--out-dir", str(one), "--workers", "2", "--patch", "1,1", "--patch",
+                  "0,1"])  # fmt: skip
             rss_one = _peak_worker_rss(one)
         finally:
             assert cluster.stdin is not None
@@ -344,7 +346,7 @@ def main() -> None:
         print("targets: speed-up >= 1.8x and CPU / serial <= 1.10 for workers2 and scheduler")
         rss_all = float(np.median([r["rss"] for r in results["workers2"]]))
         print(
-            f"peak RSS of a worker: {rss_one:.0f} MB for 1 patch, {rss_all:.0f} MB for "
+            f"peak RSS of a worker: {rss_one:.0f} MB for 1 patch each, {rss_all:.0f} MB for "
             f"{n_patches} patches (ratio {rss_all / rss_one:.2f}, target: flat)"
         )
         print(f"scheduler round trip per task: {1000 * overhead:.1f} ms (no-op tasks)")
