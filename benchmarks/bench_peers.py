@@ -607,6 +607,8 @@ def main() -> None:
     if swarp_program() is None:
         print("SWarp is not installed (apt-get install swarp): skipped")
     print()
+    if args.workdir:
+        Path(args.workdir).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=args.workdir) as directory:
         realistic_job(args, Path(directory))
         if args.small:
