@@ -409,12 +409,17 @@ def test_parts_per_patch_keeps_every_worker_busy_to_the_end():
             assert sum(parts) % workers == 0  # equal tasks share out evenly
 
 
-def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp_path):
+def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp_path, monkeypatch):
     """Three patches on two workers: two whole, the third cut in two bands of cells, built
     as separate tasks and written by a worker; the files equal those of the serial run."""
     pytest.importorskip("distributed")
     from cellcoadd.pipelines.tract_run import dask_cluster
 
+    # a nanny lets this process's environment win over the configuration (as a user's
+    # MALLOC_* settings should); an in-process dask worker of another test may have left
+    # dask's own values there
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
     client, close = dask_cluster(2)
     try:
         # the workers run with cellcoadd's settings (heap arrays, no 10 ms profiler)
