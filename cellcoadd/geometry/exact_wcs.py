@@ -22,12 +22,12 @@ import warnings
 from typing import Any
 
 import numpy as np
+from astropy import wcs as astropy_wcs  # its C base class WCSBase, used by name below
 from astropy.wcs import (
     WCS,
     WCSHDO_P17,
     FITSFixedWarning,
     Sip,
-    WCSBase,  # the C base class, which astropy's own copies initialise
     WCSHDO_all,
     Wcsprm,
 )
@@ -149,7 +149,9 @@ def from_exact_state(state: dict[str, Any], cls: type[ExactWCS] = ExactWCS) -> E
             )
         wcs = cls.__new__(cls)
         # what astropy's WCS.__init__ and copies do, without parsing a FITS header again
-        WCSBase.__init__(wcs, None, (None, None), params, (None, None))
+        # the C base class, which astropy's own copies initialise (not a module name here:
+        # the API reference would document it as ours)
+        astropy_wcs.WCSBase.__init__(wcs, None, (None, None), params, (None, None))
         wcs.__dict__.update(attributes)
     apply_wcs_exact_parameters(wcs, state["exact"])
     return wcs
