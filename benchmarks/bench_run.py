@@ -19,13 +19,16 @@ are indexed (``cellcoadd index``), then the whole tract is run with ``cellcoadd 
   would be).
 
 Each run is a fresh process in a fresh output directory; rounds interleave the three
-(``--repeats``). CPU is the run process and its children (``RUSAGE_CHILDREN``), plus, for
-``scheduler``, the CPU its workers used during the run (psutil). Printed: wall, CPU, the
-ratios to serial, SHA-256 of every patch (identical across modes), the peak RSS of the
-workers for 1 and for all patches, the scheduler's round trip per task (no-op tasks),
-the index build time per 1,000 files and the query time of a patch at 100,000 synthetic
-rows. The load average and idle cores are printed with every run: on a shared machine
-the ratios are only as good as the cores that were free.
+(``--repeats``) and every run is printed (the host's speed drifts between rounds by up
+to ~10% here), then the medians. CPU is the run process and its children
+(``RUSAGE_CHILDREN``), plus, for ``scheduler``, the CPU its workers used during the run
+(psutil). Printed: wall, CPU, the ratios to serial, the CPU the patch tasks themselves
+report (telling the cost of running two at once apart from start-up and scheduling),
+SHA-256 of every patch (identical across modes), the peak RSS of the workers for 1 and
+for all patches, the scheduler's round trip per task (no-op tasks), the index build time
+per 1,000 files and the query time of a patch at 100,000 synthetic rows. The load
+average and idle cores are printed with every run: on a shared machine the ratios are
+only as good as the cores that were free.
 
 Run as ``.venv/bin/python benchmarks/bench_run.py [--visits 12] [--repeats 1] [--quick]``.
 """
@@ -173,6 +176,13 @@ def _hashes(out: Path) -> dict[str, str]:
     }
 
 
+def _task_cpu(out: Path) -> float:
+    """CPU s the patch tasks report (their processes' CPU while they ran): the rest of a
+    run's CPU is start-up, planning, scheduling and bookkeeping."""
+    report = json.loads((out / "report.json").read_text())
+    return sum(p.get("cpu_s", 0.0) for p in report["patches"] if p["state"] == "done")
+
+
 def _peak_worker_rss(out: Path) -> float:
     report = json.loads((out / "report.json").read_text())
     return max(p.get("peak_rss_mb", 0.0) for p in report["patches"] if p["state"] == "done")
@@ -308,7 +318,8 @@ def main() -> None:
                     if mode == "scheduler":
                         cpu += _tree_cpu(cluster.pid) - before
                     results.setdefault(mode, []).append({
-                        "wall": wall, "cpu": cpu, "hashes": _hashes(out),
+                        "wall": wall, "cpu": cpu, "tasks": _task_cpu(out),
+                        "hashes": _hashes(out),
                         "rss": _peak_worker_rss(out), "idle": idle,
                         "load": os.getloadavg()[0],
                     })  # fmt: skip
@@ -322,20 +333,31 @@ def main() -> None:
             assert cluster.stdin is not None
             cluster.stdin.close()
             cluster.wait(timeout=60)
+        # every run, in the order run: the host's speed drifts between rounds
+        print()
+        print(format_table(
+            ["round", "run", "wall s", "CPU s", "tasks' CPU s", "idle cores before",
+             "load 1 min"],
+            [[k, mode, r["wall"], r["cpu"], r["tasks"], r["idle"], r["load"]]
+             for k in range(args.repeats) for mode, runs in results.items()
+             for r in runs[k : k + 1]],
+            ["d", "s", ".1f", ".1f", ".1f", ".2f", ".2f"],
+        ))  # fmt: skip
         rows = []
-        serial = {k: float(np.median([r[k] for r in results["serial"]])) for k in ("wall", "cpu")}
+        keys = ("wall", "cpu", "tasks")
+        serial = {k: float(np.median([r[k] for r in results["serial"]])) for k in keys}
         for mode, runs in results.items():
-            wall = float(np.median([r["wall"] for r in runs]))
-            cpu = float(np.median([r["cpu"] for r in runs]))
+            median = {k: float(np.median([r[k] for r in runs])) for k in keys}
             rows.append([
-                mode, wall, cpu, serial["wall"] / wall, cpu / serial["cpu"], runs[-1]["rss"],
-                runs[-1]["idle"], runs[-1]["load"],
+                mode, median["wall"], median["cpu"], serial["wall"] / median["wall"],
+                median["cpu"] / serial["cpu"], median["tasks"] / serial["tasks"],
+                runs[-1]["rss"],
             ])  # fmt: skip
         print()
         print(format_table(
-            ["run", "wall s", "CPU s", "speed-up", "CPU / serial", "peak RSS worker MB",
-             "idle cores before", "load 1 min"], rows,
-            ["s", ".1f", ".1f", ".2f", ".2f", ".0f", ".2f", ".2f"],
+            ["run (medians)", "wall s", "CPU s", "speed-up", "CPU / serial",
+             "tasks' CPU / serial", "peak RSS worker MB"], rows,
+            ["s", ".1f", ".1f", ".2f", ".2f", ".2f", ".0f"],
         ))  # fmt: skip
         hashes = [r["hashes"] for runs in results.values() for r in runs]
         same = all(h == hashes[0] for h in hashes) and len(hashes[0]) == n_patches

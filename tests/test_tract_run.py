@@ -420,6 +420,7 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
     # dask's own values there
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
     client, close = dask_cluster(2)
     try:
         # the workers run with cellcoadd's settings (heap arrays, no 10 ms profiler)
@@ -431,7 +432,7 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
     finally:
         close()
     assert len(settings) == 2
-    assert set(settings.values()) == {("33554432", "268435456", False, "1s")}
+    assert set(settings.values()) == {("33554432", "268435456", "1", False, "1s")}
     assert not result.failed and sorted(result.built) == [(0, 0), (1, 1), (2, 2)]
     assert not _same_outputs(tmp_path / "out", field / "reference")
     report = json.loads((tmp_path / "out" / "report.json").read_text())
@@ -444,6 +445,7 @@ def _worker_settings() -> tuple:
     return (
         os.environ.get("MALLOC_MMAP_THRESHOLD_"),
         os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+        os.environ.get("MALLOC_ARENA_MAX"),
         dask.config.get("distributed.worker.profile.enabled"),
         dask.config.get("distributed.admin.tick.interval"),
     )
@@ -459,6 +461,7 @@ def test_worker_environment_gives_dask_the_same_settings():
     env = dask_worker_environment()
     assert env.pop("MALLOC_MMAP_THRESHOLD_") == "33554432"
     assert env.pop("MALLOC_TRIM_THRESHOLD_") == "268435456"
+    assert env.pop("MALLOC_ARENA_MAX") == "1"
     assert all(name.startswith("DASK_DISTRIBUTED__") and "-" not in name for name in env)
     with dask.config.set(dask.config.collect_env(env)):
         for key, value in DASK_WORKER_CONFIG.items():
