@@ -279,18 +279,6 @@ def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
     assert sum(not c.is_empty for c in serial.cells.values()) >= 4
 
 
-@pytest.fixture(scope="module")
-def dask_client():
-    distributed = pytest.importorskip("distributed")
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
-        yield client
-
-
 def test_patch_identical_on_a_dask_cluster(tract, patch_inputs, dask_client):
     exposures, serial = patch_inputs
     on_dask = build_patch(

@@ -58,18 +58,6 @@ def test_blocks_list_the_cells_in_file_order(tiny, monkeypatch):
             assert flat == sorted(cell.index for cell in patch.cells)
 
 
-@pytest.fixture(scope="module")
-def dask_client():
-    distributed = pytest.importorskip("distributed")
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
-        yield client
-
-
 @pytest.mark.parametrize("workers", [1, 2, "dask"])
 def test_a_streamed_write_holds_a_few_blocks_not_the_patch(
     tmp_path, tiny, monkeypatch, request, workers
