@@ -203,3 +203,19 @@ def test_validation_setting_reaches_the_prior():
     for a, b in ((on.plus, off.plus), (on.minus, off.minus)):
         assert np.array_equal(a.selected, b.selected) and a.selected.all()
         np.testing.assert_allclose(a.Q / a.P[:, None], b.Q / b.P[:, None], rtol=1e-6)
+
+
+def test_command_line_flag_reaches_the_settings():
+    """``cellcoadd validate-shear --bfd-mirror`` runs with the mirrored prior (recorded in
+    the result's settings); without the flag it stays off."""
+    import json
+
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+
+    args = ["validate-shear", "--method", "bfd", "--n-objects", "2", "--bfd-templates", "2"]
+    for flag, expected in (([], False), (["--bfd-mirror"], True)):
+        result = CliRunner().invoke(cli, [*args, *flag, "--json", "--quiet"])
+        assert result.exit_code == 0, result.output
+        assert json.loads(result.output)["settings"]["bfd_mirror"] is expected

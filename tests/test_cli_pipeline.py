@@ -30,6 +30,7 @@ def test_command_line_pipeline(tmp_path):
         str(out),
         "--n-noise",
         "1",
+        "--psf-corners",
         "--quiet",
     ]
     result = runner.invoke(cli, args)
@@ -42,6 +43,12 @@ def test_command_line_pipeline(tmp_path):
     info = json.loads(runner.invoke(cli, ["info", str(out), "--json"]).output)
     assert info["cells"]["total"] == len(cellcoadd.read(out).cells) == 36
     assert info["n_noise"] == 1
+    # --psf-corners: the coadd PSF at the inner corners too, so psf_at interpolates
+    cell = next(c for c in cellcoadd.read(out).cells.values() if not c.is_empty)
+    assert cell.psf_corners is not None and cell.psf_corners.shape[0] == 4
+    border = cell.inner_bbox.x_start - cell.outer_bbox.x_start
+    near_corner = cell.psf_at(border + 5.0, border + 5.0)
+    assert near_corner.shape == cell.psf.shape and abs(near_corner.sum() - 1.0) < 1e-6
     converted = tmp_path / "patch.fits"
     result = runner.invoke(cli, ["convert", str(out), str(converted)])
     assert result.exit_code == 0, result.output
