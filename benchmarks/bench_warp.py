@@ -37,9 +37,6 @@ process CPU time:
 * peak (8 lanes): the same chains written as explicit vectors of eight doubles
   (``llvm.fma.v8f64``), which AVX-512 runs in 512-bit registers: the core's float64
   peak where it is higher. ``% peak8 (72)`` is the fraction of it.
-
-The rate is measured after the other methods ran (its inputs mostly out of the caches)
-and, as ``warm``, right after an untimed run on the same inputs (as the build calls it).
 * the kernel, per output pixel and plane: the 6x6 sums, 36 multiplications and 30
   additions for the column sums plus 6 and 5 for the sum across them (77 FLOP), and the
   accumulation ``out += weight * sum`` (2 FLOP); per output pixel, shared by its planes,
@@ -49,6 +46,9 @@ and, as ``warm``, right after an untimed run on the same inputs (as the build ca
   ``floor`` and integer conversions not counted). So ``79 + WEIGHT_FLOP / P`` FLOP per
   output pixel-plane. ``% peak (72)`` counts only the 72 FLOP of the 36 multiply-adds of
   the taps, a floor on any count.
+
+The rate is measured after the other methods ran (its inputs mostly out of the caches)
+and, as ``warm``, right after an untimed run on the same inputs (as the build calls it).
 
 With ``--compete`` the script starts a second process running a Python busy loop and pins
 it and itself to the same core (the benchmark's CPU time then shares that core's caches
@@ -178,6 +178,11 @@ def start_competitor() -> subprocess.Popen:
     competitor = subprocess.Popen([sys.executable, "-c", "while True:\n    pass"])
     os.sched_setaffinity(competitor.pid, {core})
     return competitor
+
+
+def taps_gflops(rate: float) -> float:
+    """GFLOP/s of the taps' 72 FLOP alone at ``rate`` Mpix-plane/s."""
+    return rate * MULTIPLY_ADD_FLOP / 1e3
 
 
 def flop_per_pixel_plane(n_planes: int) -> float:
@@ -360,10 +365,10 @@ def run(repeats: int, competitor: subprocess.Popen | None) -> None:
                 rates["accumulate"],
                 gflops,
                 100 * gflops / peak,
-                100 * rates["accumulate"] * MULTIPLY_ADD_FLOP / 1e3 / peak,
-                100 * rates["accumulate"] * MULTIPLY_ADD_FLOP / 1e3 / peak_wide,
+                100 * taps_gflops(rates["accumulate"]) / peak,
+                100 * taps_gflops(rates["accumulate"]) / peak_wide,
                 rates["acc. warm"],
-                100 * rates["acc. warm"] * MULTIPLY_ADD_FLOP / 1e3 / peak,
+                100 * taps_gflops(rates["acc. warm"]) / peak,
             )
         )
         difference = np.abs(results["cellcoadd"][0] - results["galsim L3"][0]).max()
