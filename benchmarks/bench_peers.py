@@ -22,9 +22,9 @@ Two jobs, each on one core per code:
 
    Then cellcoadd's CPU by stage (header and read, mapping, selection, input planes with
    noise generation, mask interpolation, PSF draw, PSF warp, PSF moments, warp kernel,
-   accumulation, finishing, write), from one K = 3 build in this process under
-   ``cProfile`` with a CPU clock (the profiler's own overhead inflates the Python-heavy
-   stages; the shares are what to read).
+   accumulation, finishing, write), from one K = 3 build (``--stages-noise 0,3``: one
+   K = 0 build too) in this process, each stage's functions wrapped with a CPU clock
+   (nested stages subtracted; what no stage claims is "other build").
 
 2. **The small job (second):** today's 36-cell patch (6 x 6 cells) from in-memory
    exposures of ``--small-size`` px, ``build_patch`` against the same peers (GalSim and
@@ -39,7 +39,8 @@ seconds grow with contention too (shared caches and memory bandwidth), so ratios
 loaded machine are not the idle-machine figures.
 
 Run as ``.venv/bin/python benchmarks/bench_peers.py [--rounds N] [--cells-per-patch N]
-[--exposures N] [--size PX] [--no-small] [--no-stages] [--workdir DIR]``; e.g. the smallest
+[--exposures N] [--size PX] [--no-small] [--no-stages] [--stages-noise K,...]
+[--workdir DIR]``; e.g. the smallest
 sensible realistic job: ``--cells-per-patch 4 --size 1400``.
 """
 
@@ -515,15 +516,15 @@ def realistic_job(args: argparse.Namespace, work: Path) -> None:
     if swarp_program() is not None:
         codes["SWarp LANCZOS3 weighted"] = swarp_files_runner(plain, wcs, shape, work)
     compare(codes, args.rounds, area, "patch")
-    if args.stages:
-        totals, total = stage_profile(paths, patch, 3, work / "stages.h5")
+    for k in args.stages_noise if args.stages else ():
+        totals, total = stage_profile(paths, patch, k, work / "stages.h5")
         rows = [
             (stage, seconds, 100 * seconds / total)
             for stage, seconds in sorted(totals.items(), key=lambda item: -item[1])
         ]
         print(
-            f"cellcoadd K=3 CPU by stage (one serial build in this process, {total:.1f} CPU s; "
-            f"load average {os.getloadavg()[0]:.2f}):\n"
+            f"cellcoadd K={k} CPU by stage (one serial build in this process, {total:.1f} CPU "
+            f"s; load average {os.getloadavg()[0]:.2f}):\n"
         )
         print(format_table(["stage", "CPU s", "%"], rows, ["s", ".2f", ".1f"]))
         print()
@@ -599,6 +600,12 @@ def main() -> None:
     parser.add_argument("--small-size", type=int, default=2000, help="small-job exposure side")
     parser.add_argument("--no-small", dest="small", action="store_false", help="skip job 2")
     parser.add_argument("--no-stages", dest="stages", action="store_false", help="no stages")
+    parser.add_argument(
+        "--stages-noise",
+        type=lambda text: [int(k) for k in text.split(",")],
+        default=[3],
+        help="noise realizations K of the stage profiles, comma-separated (default 3)",
+    )
     parser.add_argument("--workdir", help="where the inputs go (default: a temporary dir)")
     args = parser.parse_args()
     print(f"peers: {machine_summary()}")
