@@ -8,12 +8,15 @@ import galsim
 import numpy as np
 import pytest
 
+from cellcoadd.errors import ShearError
 from cellcoadd.shear import (
     METACAL_TYPES,
     PAPER_CUTS,
     SHAPE_DTYPE,
     MetacalError,
     MetacalFlags,
+    SelectionCuts,
+    bias_by_selection,
     mean_shear,
     measure_metacal,
     measure_shapes,
@@ -481,6 +484,41 @@ def test_selection_response_corrects_shear_dependent_selection():
     plain = shear_response(catalogues)
     np.testing.assert_allclose(plain.R_S, 0.0, atol=1e-12)
     np.testing.assert_allclose(plain.shear, g_true, atol=1e-12)
+
+
+def test_bias_by_selection_pairs_the_selections():
+    rng = np.random.default_rng(11)
+    n_pairs, g_true = 4000, 0.02
+    shapes = rng.normal(0.0, 0.25, size=(n_pairs, 2))
+    common = {"R": 0.6, "shape_noise": shapes, "measurement_noise": 0.1, "alignment": 8.0}
+    plus = _synthetic_catalogues(rng, n_pairs, (g_true, 0.0), **common)
+    minus = _synthetic_catalogues(rng, n_pairs, (-g_true, 0.0), **common)
+    cut = SelectionCuts(s2n_min=12.0, T_ratio_min=0.5)  # shear-dependent: S/N aligns
+    selections = {"none": None, "S/N > 12": cut, "again none": None, "all kept": SelectionCuts(
+        s2n_min=-np.inf, T_ratio_min=-np.inf)}  # fmt: skip
+    out = bias_by_selection(plus, minus, selections, true_g=g_true, group=2)
+    assert list(out) == list(selections)
+    # Each entry is multiplicative_bias's own for that selection.
+    for name, selection in selections.items():
+        alone = multiplicative_bias(plus, minus, true_g=g_true, selection=selection, group=2)
+        assert out[name]["m1"] == pytest.approx(alone["m1"], abs=1e-14)
+        assert out[name]["m1_err"] == pytest.approx(alone["m1_err"], rel=1e-12)
+        assert out[name]["scatter"] == pytest.approx(alone["m1_err"] * np.sqrt(2 * n_pairs))
+    assert "dm1" not in out["none"]
+    # The same selection twice (or one removing nothing): no difference, no error.
+    for name in ("again none", "all kept"):
+        assert out[name]["dm1"] == pytest.approx(0.0, abs=1e-14)
+        assert out[name]["dm1_err"] == pytest.approx(0.0, abs=1e-14)
+    # A shear-dependent cut, corrected for its selection response, changes m1 by no more
+    # than the paired error allows (uncorrected, such a cut is off by > 10 sigma: see
+    # test_selection_response_corrects_shear_dependent_selection).
+    cut_entry = out["S/N > 12"]
+    assert cut_entry["dm1"] == pytest.approx(cut_entry["m1"] - out["none"]["m1"], abs=1e-14)
+    assert cut_entry["dm1_err"] > 0
+    assert abs(cut_entry["dm1"]) < 4 * cut_entry["dm1_err"]
+    assert abs(cut_entry["m1"]) < 4 * cut_entry["m1_err"]
+    with pytest.raises(ShearError, match="at least one selection"):
+        bias_by_selection(plus, minus, {})
 
 
 def test_response_skips_flagged_objects():

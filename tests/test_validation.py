@@ -12,6 +12,7 @@ from click.testing import CliRunner
 
 from cellcoadd.cli.shear import parse_snr
 from cellcoadd.cli.shear import validate_shear as validate_shear_command
+from cellcoadd.errors import ShearError
 from cellcoadd.pipelines import (
     PAPER_TABLE1,
     ValidationSettings,
@@ -19,7 +20,7 @@ from cellcoadd.pipelines import (
     largest_cell_inner,
     validate_shear,
 )
-from cellcoadd.pipelines.shear_validation import RESULT_KEYS, measure_pairs
+from cellcoadd.pipelines.shear_validation import RESULT_KEYS, cut_comparison, measure_pairs
 from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
@@ -98,6 +99,20 @@ def test_results_do_not_depend_on_workers_or_chunks(coadd_run):
     np.testing.assert_array_equal(joined.index, [5, 6, 7])
     assert joined.plus["1p"].tobytes() == first.plus["1p"][5:8].tobytes()
     assert joined.noise_sigma.tobytes() == first.noise_sigma[5:8].tobytes()
+
+
+def test_cut_comparison_of_a_run(coadd_run):
+    settings = ValidationSettings(**coadd_run["settings"])
+    table = cut_comparison(settings, coadd_run["measurements"])
+    assert list(table) == ["none", "S/N > 10", "T/T_psf > 0.5", "both"]
+    # at S/N 10^4 every object passes the cuts: each selection is the run's own, exactly
+    for name, entry in table.items():
+        assert entry["m1"] == pytest.approx(coadd_run["m1"], abs=1e-14)
+        assert entry["m1_err"] == pytest.approx(coadd_run["m1_err"], rel=1e-12)
+        if name != "none":
+            assert entry["dm1"] == 0.0 and entry["dm1_err"] == 0.0
+    with pytest.raises(ShearError, match="metacal"):
+        cut_comparison(ValidationSettings(method="bfd"), coadd_run["measurements"])
 
 
 def test_pairs_share_galaxy_and_noise():

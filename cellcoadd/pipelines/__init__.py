@@ -31,6 +31,7 @@ _EXPORTS: dict[str, str] = {
     "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.bias_table",
     "PairCatalogue": "cellcoadd.pipelines.stamp_pairs",
     "format_bias_table": "cellcoadd.pipelines.bias_table",
+    "cut_comparison": "cellcoadd.pipelines.shear_validation",
     "measure_pairs": "cellcoadd.pipelines.shear_validation",
     "run_pairs": "cellcoadd.pipelines.shear_validation",
     "summarize": "cellcoadd.pipelines.shear_validation",
@@ -56,6 +57,7 @@ __all__ = [
     "PairMeasurement",
     "RunResult",
     "ValidationSettings",
+    "cut_comparison",
     "format_bias_table",
     "largest_cell_inner",
     "measure_multi_epoch",
@@ -86,6 +88,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         measure_single_epoch,
     )
     from cellcoadd.pipelines.shear_validation import (
+        cut_comparison,
         measure_pairs,
         run_pairs,
         summarize,

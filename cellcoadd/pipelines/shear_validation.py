@@ -49,7 +49,13 @@ from cellcoadd.pipelines.validation_settings import (
     stamp_cell,
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
-from cellcoadd.shear.response import cuts_for_shape, multiplicative_bias, shear_response
+from cellcoadd.shear.response import (
+    SelectionCuts,
+    bias_by_selection,
+    cuts_for_shape,
+    multiplicative_bias,
+    shear_response,
+)
 from cellcoadd.shear.shapes import WMOM_FWHM
 from cellcoadd.sim.config import SimConfig
 
@@ -200,6 +206,43 @@ def summarize(settings: ValidationSettings, catalogue: PairCatalogue) -> dict[st
         "R_S11": float(response.R_S[0, 0]),
         "s2n_median": float(np.median(s2n)) if s2n.size else float("nan"),
     }
+
+
+def cut_comparison(
+    settings: ValidationSettings, catalogue: PairCatalogue
+) -> dict[str, dict[str, float]]:
+    """``m1`` of a metacal catalogue without cuts, with each of its shape's cuts alone and
+    with both (the run's own), and each one's paired difference from no cuts (see
+    :func:`~cellcoadd.shear.response.bias_by_selection`).
+
+    Keys: ``"none"`` (``flags == 0`` only), ``"S/N > s"``, ``"T/T_psf > t"`` and
+    ``"both"``. What tells whether a cut biases ``m1`` (``dm1`` against its error) and
+    what it costs (``scatter``: the CPU for a given ``sigma_m`` grows as its square).
+
+    Raises
+    ------
+    ShearError
+        For a BFD or AnaCal catalogue (their selections are not these cuts).
+    """
+    if settings.method != "metacal":
+        raise ShearError(f"cut_comparison is for metacal catalogues, not {settings.method}")
+    cuts = cuts_for_shape(settings.shape)
+    selections = {
+        "none": None,
+        f"S/N > {cuts.s2n_min:g}": SelectionCuts(s2n_min=cuts.s2n_min, T_ratio_min=-np.inf),
+        f"T/T_psf > {cuts.T_ratio_min:g}": SelectionCuts(
+            s2n_min=-np.inf, T_ratio_min=cuts.T_ratio_min
+        ),
+        "both": cuts,
+    }
+    return bias_by_selection(
+        catalogue.plus,
+        catalogue.minus,
+        selections,
+        true_g=settings.sim.shear[0],
+        step=settings.step,
+        group=_group(settings, catalogue),
+    )
 
 
 def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> int:
@@ -381,6 +424,7 @@ def validate_shear(
 
 __all__ = [
     "RESULT_KEYS",
+    "cut_comparison",
     "measure_pairs",
     "run_pairs",
     "summarize",

@@ -351,3 +351,84 @@ def multiplicative_bias(
     return paired_shear_bias(
         terms, _N_COLUMNS, lambda sums: _calibrated_shear(sums, step), true_g, n_blocks, group
     )
+
+
+def bias_by_selection(
+    plus: Results,
+    minus: Results,
+    selections: Mapping[str, Selection | None],
+    true_g: float = 0.02,
+    step: float = 0.01,
+    n_blocks: int = 100,
+    group: int = 1,
+) -> dict[str, dict[str, float]]:
+    """``m1`` of the same paired objects under several selections, and each one's paired
+    difference from the first.
+
+    Every selection is corrected for its own selection response, as in
+    :func:`multiplicative_bias` (whose ``m1`` and error each entry equals). The
+    differences share the objects, so their jackknife errors (the same blocks for every
+    selection) are much smaller than the biases' own: whether a cut changes ``m1`` can be
+    told at a precision no single bias reaches. ``m1_err * sqrt(N)`` (the per-pair
+    scatter) tells what a cut costs: the CPU a run needs for a given ``sigma_m`` grows as
+    its square.
+
+    Parameters
+    ----------
+    plus, minus : mapping or sequence of mappings
+        The ``(+true_g, 0)`` and ``(-true_g, 0)`` members, row ``k`` of both the same object
+        (see :func:`multiplicative_bias`).
+    selections : mapping of str to selection or None
+        Named cuts (None: ``flags == 0`` only); the first is the reference.
+    true_g, step, n_blocks, group
+        As in :func:`multiplicative_bias`.
+
+    Returns
+    -------
+    dict of str to dict
+        Per selection ``m1``, ``m1_err`` and ``scatter`` (``m1_err * sqrt(N)``, N the
+        pairs); after the first, ``dm1`` and ``dm1_err``: ``m1`` minus the first's.
+
+    Raises
+    ------
+    ShearError
+        Without selections, or when ``plus`` and ``minus`` differ in length.
+    """
+    if not selections:
+        raise ShearError("bias_by_selection needs at least one selection")
+    plus_cats, minus_cats = stack_results(plus), stack_results(minus)
+    n_pairs = len(plus_cats["noshear"])
+    if n_pairs != len(minus_cats["noshear"]):
+        raise ShearError("plus and minus catalogues must hold the same objects (same length)")
+    names = list(selections)
+    terms = np.hstack(
+        [
+            _contributions(cats, step, selections[name])
+            for name in names
+            for cats in (plus_cats, minus_cats)
+        ]
+    )
+    width = 2 * _N_COLUMNS
+
+    def biases(sums: np.ndarray) -> np.ndarray:
+        m1 = np.empty(len(names))
+        for k in range(len(names)):
+            own = sums[k * width : (k + 1) * width]
+            g_plus = _calibrated_shear(own[:_N_COLUMNS], step)
+            g_minus = _calibrated_shear(own[_N_COLUMNS:], step)
+            m1[k] = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
+        return np.concatenate([m1, m1[1:] - m1[0]])
+
+    estimate, error = jackknife(terms, n_blocks, biases, group)
+    out: dict[str, dict[str, float]] = {}
+    for k, name in enumerate(names):
+        entry = {
+            "m1": float(estimate[k]),
+            "m1_err": float(error[k]),
+            "scatter": float(error[k] * np.sqrt(n_pairs)),
+        }
+        if k:
+            entry["dm1"] = float(estimate[len(names) + k - 1])
+            entry["dm1_err"] = float(error[len(names) + k - 1])
+        out[name] = entry
+    return out
