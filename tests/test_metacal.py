@@ -22,9 +22,11 @@ from cellcoadd.shear import (
     measure_shapes,
     metacal_images,
     multiplicative_bias,
+    noise_covariances,
     reconvolution_psf,
     shear_response,
 )
+from cellcoadd.shear.noise_correlation import metacal_noise_covariance
 
 SCALE = 0.2  # arcsec/pixel
 SQUARE_JACOBIAN = np.array([[SCALE, 0.0], [0.0, SCALE]])
@@ -110,6 +112,37 @@ def test_noise_correction_is_added_linearly_and_doubles_the_variance():
     # The correction is the metacal transform of the noise: it scales with it.
     doubled = metacal_images(image, psf_image, 2 * noise, SKEW_JACOBIAN, types=("1p",))["1p"]
     np.testing.assert_allclose(doubled.noise, 2 * noisy.noise, atol=1e-12)
+
+
+def test_every_type_uses_the_noshear_noise_covariance():
+    # One covariance per object: a type's S/N moves with its flux alone, never with the
+    # estimation noise of its own correction (which would push objects across an S/N cut
+    # between 1p and 1m for no reason).
+    rng = np.random.default_rng(4)
+    psf = galsim.Moffat(beta=3.5, fwhm=0.8)
+    psf_image = _psf_stamp(psf, SQUARE_JACOBIAN, size=25)
+    image = _observe(galsim.Exponential(half_light_radius=0.4, flux=60.0), psf, SQUARE_JACOBIAN)
+    image = image + rng.normal(0.0, 0.1, size=image.shape)
+    noise = rng.normal(0.0, 0.1, size=image.shape)
+    images = metacal_images(image, psf_image, noise, SQUARE_JACOBIAN)
+    covariances = noise_covariances(images)
+    expected = metacal_noise_covariance(images["noshear"].noise)
+    for name in METACAL_TYPES:
+        np.testing.assert_array_equal(covariances[name], expected)
+    # each type's own estimate differs (that is what the shared one removes)
+    own = {name: metacal_noise_covariance(images[name].noise) for name in ("1p", "1m")}
+    assert np.max(np.abs(own["1p"] - own["1m"])) > 1e-3 * np.max(np.abs(expected))
+    # the fixed wmom weight and one covariance: flux / S/N is the same in every type
+    result = measure_metacal(
+        image, psf_image, noise, SQUARE_JACOBIAN, 0.1, guess_centroid=(31.5, 31.5),
+        shape="wmom",
+    )  # fmt: skip
+    flux_errors = [result[name]["flux"][0] / result[name]["s2n"][0] for name in METACAL_TYPES]
+    np.testing.assert_allclose(flux_errors, flux_errors[0], rtol=1e-12)
+    # without a correction nothing is measured: white noise
+    assert set(
+        noise_covariances(metacal_images(image, psf_image, None, SQUARE_JACOBIAN)).values()
+    ) == {None}
 
 
 # --- correlated-noise correction ------------------------------------------------------

@@ -76,6 +76,15 @@ def test_joint_measurement_of_one_epoch_is_the_single_epoch_measurement(shape):
                 assert joint[name][field][0] == pytest.approx(record[field][0], rel=1e-5)
 
 
+def test_every_type_uses_each_epochs_noshear_noise_covariance():
+    # the fixed joint wmom weight and one covariance per epoch for every type: each
+    # type's S/N moves with its flux alone (see test_metacal's single-image test)
+    joint = measure_metacal_multi_epoch(_epochs(3), shape="wmom")
+    flux_errors = [record["flux"][0] / record["s2n"][0] for record in joint.values()]
+    assert all(record["flags"][0] == 0 for record in joint.values())
+    np.testing.assert_allclose(flux_errors, flux_errors[0], rtol=1e-12)
+
+
 def test_common_reconvolution_psf_is_the_largest_of_the_epochs():
     epochs = _epochs(3)
     psfs, jacs = [e.psf_image for e in epochs], [e.jacobian for e in epochs]

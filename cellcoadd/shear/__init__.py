@@ -18,6 +18,7 @@ from cellcoadd.shear.metacal import (
     measure_shapes,
     metacal_images,
     metacal_shears,
+    noise_covariances,
     reconvolution_psf,
 )
 from cellcoadd.shear.multi_epoch import (
@@ -86,6 +87,7 @@ __all__ = [
     "multi_epoch_images",
     "multiplicative_bias",
     "noise_correlation",
+    "noise_covariances",
     "noise_covariance",
     "noise_power_spectrum",
     "observation_jacobian",

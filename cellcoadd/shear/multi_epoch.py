@@ -45,9 +45,9 @@ from cellcoadd.shear.metacal import (
     check_arguments,
     input_flags,
     metacal_images,
+    noise_covariances,
     reconvolution_psf,
 )
-from cellcoadd.shear.noise_correlation import metacal_noise_covariance
 from cellcoadd.shear.shapes import (
     SHAPE_KINDS,
     WMOM_FWHM,
@@ -183,11 +183,6 @@ def multi_epoch_images(
     ]
 
 
-def _noise_covariance(image: MetacalImage) -> np.ndarray | None:
-    # the S/N from the noise's covariance, as single-image metacal's
-    return None if image.noise is None else metacal_noise_covariance(image.noise)
-
-
 def measure_joint_shapes(
     images: Sequence[Mapping[str, MetacalImage]],
     epochs: Sequence[MetacalEpoch],
@@ -218,7 +213,8 @@ def measure_joint_shapes(
         For each type, a length-1 :data:`~cellcoadd.shear.shapes.SHAPE_DTYPE` array.
         Each epoch's pixel variance is ``variance_factor * noise_sigma**2`` (its
         weight); the S/N uses the covariance of each epoch's noise, measured from its
-        correction as in :func:`cellcoadd.shear.metacal.measure_shapes`.
+        noshear correction and the same for every type, as in
+        :func:`cellcoadd.shear.metacal.measure_shapes`.
     """
     if shape not in SHAPE_KINDS:
         raise MetacalError(f"unknown shape {shape!r}; known: {SHAPE_KINDS}")
@@ -227,6 +223,7 @@ def measure_joint_shapes(
     fwhm = weight_fwhm if shape == "wmom" else None
     results: dict[str, np.ndarray] = {}
     T_psf: float | None = None
+    covariances = [noise_covariances(per_epoch) for per_epoch in images]
     for name in images[0]:
         pixels = [
             EpochPixels.from_image(
@@ -234,9 +231,9 @@ def measure_joint_shapes(
                 epoch.jacobian,
                 epoch.centre,
                 per_epoch[name].variance_factor * epoch.noise_sigma**2,
-                _noise_covariance(per_epoch[name]),
+                covariance[name],
             )
-            for per_epoch, epoch in zip(images, epochs, strict=True)
+            for per_epoch, epoch, covariance in zip(images, epochs, covariances, strict=True)
         ]
         if T_psf is None:  # the same reconvolution PSF in every type
             T_psf = joint_psf_T([per_epoch[name].psf_image for per_epoch in images], pixels, fwhm)
