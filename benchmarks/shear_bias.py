@@ -49,7 +49,7 @@ from cellcoadd.pipelines.bias_presets import (
     describe_settings,
     row_settings,
 )
-from cellcoadd.pipelines.bias_table import PAPER_TABLE1_ROWS
+from cellcoadd.pipelines.bias_table import PAPER_TABLE1_ROWS, format_cut_comparison
 
 #: sigma(m1) of the paper's metacal rows.
 PAPER_SIGMA_M = 4.0e-4
@@ -124,20 +124,6 @@ def cost_lines(results: list[dict[str, Any]], targets: list[float], workers: int
             )
         lines.append(head + "; " + "; ".join(parts))
     return lines
-
-
-def cut_table(result: dict[str, Any]) -> str:
-    """The cut comparison of one metacal row as lines of text."""
-    lines = [
-        f"{_NAMES[result['method']]} {result['mode']}, {result['n_objects']} pairs: m1 by cuts "
-        "(dm1: paired difference from no cuts; scatter: m1_err x sqrt(pairs))",
-        f"  {'cuts':16s} {'m1':>18s} {'dm1':>18s} {'scatter':>8s}",
-    ]
-    for name, entry in result["cut_comparison"].items():
-        m1 = f"{entry['m1']:+.4f} +- {entry['m1_err']:.4f}"
-        dm1 = f"{entry['dm1']:+.4f} +- {entry['dm1_err']:.4f}" if "dm1" in entry else ""
-        lines.append(f"  {name:16s} {m1:>18s} {dm1:>18s} {entry['scatter']:8.2f}")
-    return "\n".join(lines)
 
 
 def _pairs(text: str | None, rows: list[str], preset: str) -> list[int]:
@@ -245,7 +231,7 @@ def main() -> None:
     for result in results:
         if "cut_comparison" in result:
             print()
-            print(cut_table(result))
+            print(format_cut_comparison(result))
     if args.json:
         with open(args.json, "w") as stream:
             json.dump(results, stream, indent=2, default=float)

@@ -89,24 +89,3 @@ def test_benchmark_table_and_pair_counts():
     assert "32/32" in text and "0.001" in text
     (line,) = bench.cost_lines([result], [2e-4], workers=2)
     assert "sigma_m = 0.0002 needs ~16 pairs" in line
-    result["method"] = "metacal"
-    result["cut_comparison"] = {
-        "none": {"m1": -1.4e-3, "m1_err": 4.5e-3, "scatter": 0.8},
-        "S/N > 10": {"m1": 5.5e-3, "m1_err": 7.2e-3, "scatter": 1.27, "dm1": 6.9e-3,
-                     "dm1_err": 6.5e-3},
-    }  # fmt: skip
-    lines = bench.cut_table(result).splitlines()
-    assert lines[0].startswith("metacal coadd, 32 pairs")
-    assert lines[2].split() == ["none", "-0.0014", "+-", "0.0045", "0.80"]
-    assert lines[3].split() == [
-        "S/N",
-        ">",
-        "10",
-        "+0.0055",
-        "+-",
-        "0.0072",
-        "+0.0069",
-        "+-",
-        "0.0065",
-        "1.27",
-    ]

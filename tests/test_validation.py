@@ -20,6 +20,7 @@ from cellcoadd.pipelines import (
     largest_cell_inner,
     validate_shear,
 )
+from cellcoadd.pipelines.bias_table import format_cut_comparison
 from cellcoadd.pipelines.shear_validation import RESULT_KEYS, cut_comparison, measure_pairs
 from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
 from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
@@ -113,6 +114,14 @@ def test_cut_comparison_of_a_run(coadd_run):
             assert entry["dm1"] == 0.0 and entry["dm1_err"] == 0.0
     with pytest.raises(ShearError, match="metacal"):
         cut_comparison(ValidationSettings(method="bfd"), coadd_run["measurements"])
+    lines = format_cut_comparison({**coadd_run, "cut_comparison": table}).splitlines()
+    n = coadd_run["n_objects"]
+    assert lines[0].startswith(f"metacal coadd, {n} pairs: m1 by cuts")
+    m1 = f"{coadd_run['m1']:+.4f}"
+    assert lines[2].split() == ["none", m1, "+-", f"{coadd_run['m1_err']:.4f}",
+                                f"{table['none']['scatter']:.2f}"]  # fmt: skip
+    assert lines[5].split()[:2] == ["both", m1] and lines[5].split()[4:7] == ["+0.0000", "+-",
+                                                                              "0.0000"]  # fmt: skip
 
 
 def test_pairs_share_galaxy_and_noise():
@@ -341,6 +350,20 @@ def test_cli_shear_sets_the_input_shear():
     assert table.exit_code == 0 and "g_true = 0.005" in table.output
     refused = CliRunner().invoke(validate_shear_command, ["--shear", "0"])
     assert refused.exit_code != 0 and "must not be 0" in refused.output
+
+
+def test_cli_compares_cuts():
+    args = ["--shape", "wmom", "--n-objects", "2", "--snr", "1000", "--compare-cuts", "--quiet"]
+    table = CliRunner().invoke(validate_shear_command, args)
+    assert table.exit_code == 0, table.output
+    assert "metacal wmom coadd, 2 pairs: m1 by cuts" in table.output
+    rows = [line.split()[0] for line in table.output.splitlines() if line.startswith("  ")]
+    assert rows[-4:] == ["none", "S/N", "T/T_psf", "both"]
+    output = json.loads(CliRunner().invoke(validate_shear_command, [*args, "--json"]).output)
+    assert list(output["cut_comparison"]) == ["none", "S/N > 10", "T/T_psf > 1", "both"]
+    assert output["cut_comparison"]["none"]["m1"] == output["m1"]  # every object passes
+    refused = CliRunner().invoke(validate_shear_command, ["--method", "bfd", "--compare-cuts"])
+    assert refused.exit_code != 0 and "metacal only" in refused.output
 
 
 def test_cli_refuses_shape_with_bfd():

@@ -180,6 +180,12 @@ def _finite_or_null(value: object) -> object:
     show_default=True,
     help="Print the pairs and CPU hours this sigma(m1) would take (the paper's: 4e-4).",
 )
+@click.option(
+    "--compare-cuts",
+    is_flag=True,
+    help="Metacal: also m1 without cuts, with each cut alone and with both, and each one's "
+    "paired difference from no cuts (whether a cut biases m1, and what it costs).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 @quiet_option
 def validate_shear(
@@ -202,6 +208,7 @@ def validate_shear(
     checkpoint: str | None,
     checkpoint_every: int,
     target_sigma: float,
+    compare_cuts: bool,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -233,6 +240,7 @@ def validate_shear(
           --checkpoint run.npz --checkpoint-every 2000
       cellcoadd validate-shear --n-objects 20 --snr 1000 --json --quiet
       cellcoadd validate-shear --shape wmom --n-objects 400 --snr 10,50
+      cellcoadd validate-shear --shape wmom --n-objects 400 --snr 10,50 --compare-cuts
       cellcoadd validate-shear --method bfd --n-objects 200 --snr 20
       cellcoadd validate-shear --method bfd --n-objects 16 --snr 10000 --shear 0.001 \\
           --bfd-template-sample targets --no-rotated-partners
@@ -244,10 +252,10 @@ def validate_shear(
     and a small shear (--shear 0.001: no third-order terms).
     """
     from cellcoadd.errors import ConfigError
-    from cellcoadd.pipelines.bias_table import format_bias_table
-    from cellcoadd.pipelines.shear_validation import RESULT_KEYS
+    from cellcoadd.pipelines.bias_table import format_bias_table, format_cut_comparison
+    from cellcoadd.pipelines.shear_validation import RESULT_KEYS, cut_comparison
     from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
-    from cellcoadd.pipelines.validation_settings import check_method_mode
+    from cellcoadd.pipelines.validation_settings import ValidationSettings, check_method_mode
 
     try:
         check_method_mode(method, mode)
@@ -255,6 +263,8 @@ def validate_shear(
         raise click.UsageError(str(exc)) from None
     if method != "metacal" and shape != "admom":
         raise click.UsageError("--shape applies to --method metacal only")
+    if method != "metacal" and compare_cuts:
+        raise click.UsageError("--compare-cuts applies to --method metacal only")
     if method == "anacal":
         from cellcoadd.shear.anacal_adapter import require_anacal
 
@@ -290,7 +300,11 @@ def validate_shear(
         bfd_oversample=bfd_oversample,
         bfd_mirror=bfd_mirror,
         shear=shear,
+        return_measurements=compare_cuts,
     )
+    if compare_cuts:
+        settings = ValidationSettings.model_validate(result["settings"])
+        result["cut_comparison"] = cut_comparison(settings, result.pop("measurements"))
     if as_json:
         ordered = {key: result[key] for key in RESULT_KEYS}
         ordered.update({k: v for k, v in result.items() if k not in ordered})
@@ -306,6 +320,8 @@ def validate_shear(
         click.echo(
             target_cost(result["m1_err"], result["n_objects"], result["cpu_seconds"], target_sigma)
         )
+        if compare_cuts:
+            click.echo(format_cut_comparison(result))
 
 
 def target_cost(m1_err: float, n_objects: int, cpu_seconds: float, target: float) -> str:
