@@ -345,9 +345,9 @@ def noise_covariances(metacal: Mapping[str, MetacalImage]) -> dict[str, np.ndarr
     makes it so), so one estimate serves them all; separate estimates, each from its own
     correction on one small stamp, would differ by their estimation noise, and that noise
     alone would move objects across an S/N cut between the ``1p`` and ``1m`` images,
-    which the selection response then pays for in variance (on coadds at S/N 10-50: 1.8
-    times as many objects crossing ``S/N > 10`` between them, and a per-pair scatter of
-    ``m1`` of 1.27 instead of 1.04; see docs/validation.md). Without a noshear image
+    which the selection response then pays for in variance (on coadds at S/N 10-50: twice
+    as many objects crossing ``S/N > 10`` between them, and a per-pair scatter of ``m1``
+    of 1.35 instead of 0.98 with that cut; see docs/validation.md). Without a noshear image
     with a correction, each type's own (None where it has no correction: white noise).
     """
     reference = metacal.get("noshear")
