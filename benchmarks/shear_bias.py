@@ -42,7 +42,7 @@ import math
 import os
 from typing import Any
 
-from cellcoadd.pipelines import ValidationSettings, cut_comparison, validate_shear
+from cellcoadd.pipelines import validate_shear
 from cellcoadd.pipelines.bias_presets import (
     HIGH_SNR_PAIRS,
     PRESETS,
@@ -210,13 +210,9 @@ def main() -> None:
             checkpoint_every=args.checkpoint_every,
             coadd_pixel_scale=args.coadd_pixel_scale,
             progress=not args.quiet,
-            return_measurements=args.compare_cuts,
+            compare_cuts=args.compare_cuts and options["method"] == "metacal",
             **options,
         )
-        catalogue = result.pop("measurements", None)
-        if catalogue is not None and options["method"] == "metacal":
-            settings = ValidationSettings.model_validate(result["settings"])
-            result["cut_comparison"] = cut_comparison(settings, catalogue)
         results.append(result)
     print()
     print(table(results))

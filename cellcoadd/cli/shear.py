@@ -253,9 +253,9 @@ def validate_shear(
     """
     from cellcoadd.errors import ConfigError
     from cellcoadd.pipelines.bias_table import format_bias_table, format_cut_comparison
-    from cellcoadd.pipelines.shear_validation import RESULT_KEYS, cut_comparison
+    from cellcoadd.pipelines.shear_validation import RESULT_KEYS
     from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
-    from cellcoadd.pipelines.validation_settings import ValidationSettings, check_method_mode
+    from cellcoadd.pipelines.validation_settings import check_method_mode
 
     try:
         check_method_mode(method, mode)
@@ -300,11 +300,8 @@ def validate_shear(
         bfd_oversample=bfd_oversample,
         bfd_mirror=bfd_mirror,
         shear=shear,
-        return_measurements=compare_cuts,
+        compare_cuts=compare_cuts,
     )
-    if compare_cuts:
-        settings = ValidationSettings.model_validate(result["settings"])
-        result["cut_comparison"] = cut_comparison(settings, result.pop("measurements"))
     if as_json:
         ordered = {key: result[key] for key in RESULT_KEYS}
         ordered.update({k: v for k, v in result.items() if k not in ordered})

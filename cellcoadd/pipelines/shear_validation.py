@@ -27,6 +27,7 @@ import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, as_completed
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -50,7 +51,6 @@ from cellcoadd.pipelines.validation_settings import (
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
 from cellcoadd.shear.response import (
-    SelectionCuts,
     bias_by_selection,
     cuts_for_shape,
     multiplicative_bias,
@@ -229,10 +229,8 @@ def cut_comparison(
     cuts = cuts_for_shape(settings.shape)
     selections = {
         "none": None,
-        f"S/N > {cuts.s2n_min:g}": SelectionCuts(s2n_min=cuts.s2n_min, T_ratio_min=-np.inf),
-        f"T/T_psf > {cuts.T_ratio_min:g}": SelectionCuts(
-            s2n_min=-np.inf, T_ratio_min=cuts.T_ratio_min
-        ),
+        f"S/N > {cuts.s2n_min:g}": replace(cuts, T_ratio_min=-np.inf),
+        f"T/T_psf > {cuts.T_ratio_min:g}": replace(cuts, s2n_min=-np.inf),
         "both": cuts,
     }
     return bias_by_selection(
@@ -275,6 +273,7 @@ def validate_shear(
     coadd_pixel_scale: float = 0.2,
     reconvolution_psf: ReconvolutionKind = "gauss",
     return_measurements: bool = False,
+    compare_cuts: bool = False,
     method: Method = "metacal",
     shape: Literal["admom", "wmom"] = "admom",
     wmom_fwhm: float = WMOM_FWHM,
@@ -331,6 +330,8 @@ def validate_shear(
         Metacal reconvolution PSF.
     return_measurements : bool
         Also return the per-object :class:`PairCatalogue` under ``"measurements"``.
+    compare_cuts : bool
+        Metacal: also :func:`cut_comparison` of the pairs under ``"cut_comparison"``.
     method : {"metacal", "bfd", "anacal"}
         Shear method (AnaCal: FPFS, coadd or single mode; BFD: noise level fixed per run,
         see :mod:`cellcoadd.pipelines.stamp_pairs`).
@@ -417,6 +418,8 @@ def validate_shear(
     )
     result = summarize(settings, measured)
     result["wall_seconds"] = time.perf_counter() - start
+    if compare_cuts:
+        result["cut_comparison"] = cut_comparison(settings, measured)
     if return_measurements:
         result["measurements"] = measured
     return result

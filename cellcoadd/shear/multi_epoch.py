@@ -223,7 +223,7 @@ def measure_joint_shapes(
     fwhm = weight_fwhm if shape == "wmom" else None
     results: dict[str, np.ndarray] = {}
     T_psf: float | None = None
-    covariances = [noise_covariances(per_epoch) for per_epoch in images]
+    covariances = [noise_covariances(per_epoch) for per_epoch in images]  # per epoch, by type
     for name in images[0]:
         pixels = [
             EpochPixels.from_image(
@@ -231,9 +231,9 @@ def measure_joint_shapes(
                 epoch.jacobian,
                 epoch.centre,
                 per_epoch[name].variance_factor * epoch.noise_sigma**2,
-                covariance[name],
+                by_type[name],
             )
-            for per_epoch, epoch, covariance in zip(images, epochs, covariances, strict=True)
+            for per_epoch, epoch, by_type in zip(images, epochs, covariances, strict=True)
         ]
         if T_psf is None:  # the same reconvolution PSF in every type
             T_psf = joint_psf_T([per_epoch[name].psf_image for per_epoch in images], pixels, fwhm)

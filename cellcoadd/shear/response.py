@@ -237,6 +237,16 @@ def jackknife(
     return estimate, error
 
 
+def _paired_biases(
+    sums: np.ndarray, split: int, shear_of: Callable[[np.ndarray], np.ndarray], true_g: float
+) -> np.ndarray:
+    """``[m1, c1, c2]`` from the summed terms of paired objects (see
+    :func:`paired_shear_bias`)."""
+    g_plus, g_minus = shear_of(sums[:split]), shear_of(sums[split:])
+    m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
+    return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
+
+
 def paired_shear_bias(
     terms: np.ndarray,
     split: int,
@@ -256,9 +266,7 @@ def paired_shear_bias(
     """
 
     def biases(sums: np.ndarray) -> np.ndarray:
-        g_plus, g_minus = shear_of(sums[:split]), shear_of(sums[split:])
-        m1 = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
-        return np.array([m1, 0.5 * (g_plus[0] + g_minus[0]), 0.5 * (g_plus[1] + g_minus[1])])
+        return _paired_biases(sums, split, shear_of, true_g)
 
     estimate, error = jackknife(terms, n_blocks, biases, group)
     names = ("m1", "c1", "c2")
@@ -338,18 +346,26 @@ def multiplicative_bias(
     dict
         ``m1, m1_err, c1, c1_err, c2, c2_err``.
     """
+    terms = _paired_terms(plus, minus, step, [selection])
+    return paired_shear_bias(
+        terms, _N_COLUMNS, lambda sums: _calibrated_shear(sums, step), true_g, n_blocks, group
+    )
+
+
+def _paired_terms(
+    plus: Results, minus: Results, step: float, selections: Sequence[Selection | None]
+) -> np.ndarray:
+    """Per object, for each selection in turn, the summable terms of its ``+g`` member
+    then of its ``-g`` member (``2 * _N_COLUMNS`` columns a selection)."""
     plus_cats, minus_cats = stack_results(plus), stack_results(minus)
     if len(plus_cats["noshear"]) != len(minus_cats["noshear"]):
         raise ShearError("plus and minus catalogues must hold the same objects (same length)")
-    terms = np.hstack(
+    return np.hstack(
         [
-            _contributions(plus_cats, step, selection),
-            _contributions(minus_cats, step, selection),
+            _contributions(cats, step, selection)
+            for selection in selections
+            for cats in (plus_cats, minus_cats)
         ]
-    )
-
-    return paired_shear_bias(
-        terms, _N_COLUMNS, lambda sums: _calibrated_shear(sums, step), true_g, n_blocks, group
     )
 
 
@@ -396,27 +412,21 @@ def bias_by_selection(
     """
     if not selections:
         raise ShearError("bias_by_selection needs at least one selection")
-    plus_cats, minus_cats = stack_results(plus), stack_results(minus)
-    n_pairs = len(plus_cats["noshear"])
-    if n_pairs != len(minus_cats["noshear"]):
-        raise ShearError("plus and minus catalogues must hold the same objects (same length)")
     names = list(selections)
-    terms = np.hstack(
-        [
-            _contributions(cats, step, selections[name])
-            for name in names
-            for cats in (plus_cats, minus_cats)
-        ]
-    )
+    terms = _paired_terms(plus, minus, step, [selections[name] for name in names])
+    n_pairs = len(terms)
     width = 2 * _N_COLUMNS
 
+    def shear_of(sums: np.ndarray) -> np.ndarray:
+        return _calibrated_shear(sums, step)
+
     def biases(sums: np.ndarray) -> np.ndarray:
-        m1 = np.empty(len(names))
-        for k in range(len(names)):
-            own = sums[k * width : (k + 1) * width]
-            g_plus = _calibrated_shear(own[:_N_COLUMNS], step)
-            g_minus = _calibrated_shear(own[_N_COLUMNS:], step)
-            m1[k] = (g_plus[0] - g_minus[0]) / (2.0 * true_g) - 1.0
+        m1 = np.array(
+            [
+                _paired_biases(sums[k * width : (k + 1) * width], _N_COLUMNS, shear_of, true_g)[0]
+                for k in range(len(names))
+            ]
+        )
         return np.concatenate([m1, m1[1:] - m1[0]])
 
     estimate, error = jackknife(terms, n_blocks, biases, group)
