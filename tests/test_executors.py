@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import itertools
 import multiprocessing
 import os
 import re
@@ -21,6 +22,8 @@ from coadd_factory import (
     tiny_patch,
     tiny_skymap,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import cellcoadd.builder.patch as patch_module
 from cellcoadd import BuildConfig, CellBuildError, Exposure, build_patch
@@ -174,6 +177,45 @@ def test_a_patch_built_in_parts_and_merged_is_the_patch_built_at_once(tmp_path, 
                                                  cells=[bands[0][0].index])])  # fmt: skip
     with pytest.raises(ConfigError, match=r"not cells of patch"):
         build_patch(patch, good, TINY_BUILD, progress=False, cells=[(99, 99)])
+
+
+def test_parts_cut_by_cost_inside_a_column_merge_into_the_patch_built_at_once(tmp_path, tiny):
+    """Parts of equal cost may end inside a column: built and merged, the same bytes."""
+    from cellcoadd.builder.patch import merge_patch_parts, parts_by_cost
+
+    patch, good, whole = tiny
+    costs = {cell.index: 1.0 + 3.0 * (cell.index[0] % 2) for cell in patch.cells}
+    parts = parts_by_cost(patch.cells, costs, 3)
+    columns = [{cell.index[0] for cell in part} for part in parts]
+    assert len(parts) == 3 and any(a & b for a, b in itertools.pairwise(columns))  # a column cut
+    merged = merge_patch_parts(
+        [build_patch(patch, good, TINY_BUILD, seed=1, progress=False,
+                     cells=[c.index for c in part]) for part in parts]
+    )  # fmt: skip
+    api.write(whole, tmp_path / "whole.fits")
+    api.write(merged, tmp_path / "merged.fits")
+    assert _sha256(tmp_path / "whole.fits") == _sha256(tmp_path / "merged.fits")
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    costs=st.lists(st.floats(0.1, 100.0), min_size=1, max_size=60),
+    n_parts=st.integers(1, 10),
+    columns=st.integers(1, 8),
+)
+def test_parts_by_cost_are_runs_of_cells_in_file_order_of_about_equal_cost(costs, n_parts, columns):
+    from types import SimpleNamespace
+
+    from cellcoadd.builder.patch import parts_by_cost
+
+    cells = [SimpleNamespace(index=(i % columns, i // columns)) for i in range(len(costs))]
+    by_index = {cell.index: cost for cell, cost in zip(cells, costs, strict=True)}
+    parts = parts_by_cost(cells[::-1], by_index, n_parts)  # any order in
+    assert len(parts) == min(n_parts, len(cells)) and all(parts)
+    flat = [cell.index for part in parts for cell in part]
+    assert flat == sorted(by_index)  # every cell once, runs in file order
+    ideal = sum(costs) / len(parts)
+    assert max(sum(by_index[c.index] for c in part) for part in parts) <= ideal + max(costs)
 
 
 @pytest.fixture(scope="module")

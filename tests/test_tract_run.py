@@ -119,6 +119,54 @@ def test_plan_assigns_inputs_to_the_patches_they_may_touch(field):
     assert corner == {(v, d) for v in range(3) for d in (0, 1, 3, 4)}
 
 
+def test_cell_costs_count_the_inputs_each_cell_accepts(field):
+    """The cost estimated from the index alone (no file opened) counts, for each cell,
+    the inputs whose footprint covers its outer box: those the build may use. Here every
+    cell uses all of them (bar inputs masked on the cell), and never one more."""
+    with ExposureIndex(field / "inputs.sqlite", readonly=True) as index:
+        plan = plan_tract(index, skymap(), 0)
+    with Ledger(field / "reference") as ledger:
+        rows = ledger.rows(0)
+    equal = total = 0
+    for item in plan.patches:
+        costs = item.cell_costs()
+        assert set(costs) == {cell.index for cell in item.patch.cells}
+        for cx, cy, used in rows[(0, item.index)].summary["depth"]:
+            assert used <= costs[(cx, cy)] - 1 <= len(item.inputs)
+            equal += used == costs[(cx, cy)] - 1
+            total += 1
+    assert total == 9 * 16 and equal >= 0.9 * total
+    # the corner patch's cells far from the tract centre see fewer inputs than those near it
+    corner = plan.patches[0].cell_costs()
+    assert len(set(corner.values())) > 1
+
+
+def test_cell_costs_of_a_footprint_covering_part_of_a_patch():
+    """A rotated footprint (either winding) counts for the cells whose outer box it
+    holds whole, not for those it only overlaps."""
+    import numpy as np
+
+    from cellcoadd.pipelines.tract_run import PatchPlan
+
+    patch = skymap()[0].patch(1, 1)
+    cells = {cell.index: cell.outer_bbox for cell in patch.cells}
+    left = min(b.x_start for b in cells.values()) - 0.5
+    right = max(b.x_stop for b in cells.values()) - 0.5
+    bottom = min(b.y_start for b in cells.values()) - 0.5
+    top = max(b.y_stop for b in cells.values()) - 0.5
+    middle = 0.5 * (left + right)
+    # a quad over the left half of the patch, slightly rotated, in both windings
+    quad = np.array([[left - 5, bottom - 5], [middle, bottom - 4], [middle, top + 4],
+                     [left - 5, top + 5]])  # fmt: skip
+    for footprint in (quad, quad[::-1]):
+        plan = PatchPlan(patch, (1,), (), footprints=(footprint,))
+        costs = plan.cell_costs()
+        for index, box in cells.items():
+            held = box.x_stop - 0.5 <= middle
+            assert costs[index] == (2.0 if held else 1.0), (index, box)
+    assert set(PatchPlan(patch, (), ()).cell_costs().values()) == {1.0}
+
+
 def test_plan_needs_a_band_when_the_tract_has_several(tmp_path):
     from exposure_factory import make_wcs
 
@@ -437,6 +485,7 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
     assert not _same_outputs(tmp_path / "out", field / "reference")
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert sorted(p["parts"] for p in report["patches"]) == [1, 1, 2]
+    assert sorted(len(p["parts_cpu_s"]) for p in report["patches"]) == [1, 1, 2]
 
 
 def _worker_settings() -> tuple:

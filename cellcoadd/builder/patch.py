@@ -30,8 +30,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import traceback
-from collections.abc import Callable, Collection, Generator, Iterator, Sequence
+from collections.abc import Callable, Collection, Generator, Iterator, Mapping, Sequence
 from concurrent.futures import (
     FIRST_COMPLETED,
     BrokenExecutor,
@@ -162,6 +163,34 @@ def blocks_of(cells: Sequence[Cell], n_tasks: int) -> list[list[Cell]]:
         [cell for column in bands[start : start + width] for cell in column]
         for start in range(0, len(bands), width)
     ]
+
+
+def parts_by_cost(
+    cells: Sequence[Cell], costs: Mapping[tuple[int, int], float], n_parts: int
+) -> list[list[Cell]]:
+    """Cut ``cells`` into at most ``n_parts`` runs of neighbouring cells of about equal
+    total ``costs`` (any relative unit, > 0 per cell).
+
+    The cells are taken in file order (sorted by ``(cx, cy)``: columns one after the
+    other), so each part is a band of whole columns with at most a piece of a column at
+    each end, and the parts one after the other list the cells in sorted order. Each cut
+    falls where the running cost is nearest to its share; a part's cost exceeds the
+    ideal ``sum / n_parts`` by less than its costliest cell.
+    """
+    ordered = sorted(cells, key=lambda c: c.index)
+    if not ordered:
+        return []
+    running = list(itertools.accumulate(float(costs[cell.index]) for cell in ordered))
+    n = max(1, min(n_parts, len(ordered)))
+    cuts = [0]
+    for k in range(1, n):
+        share = running[-1] * k / n
+        # cut after the cell whose running cost is nearest the share (at least one cell
+        # per part, and room for one in each of the parts still to come)
+        after = min(range(len(ordered)), key=lambda i: abs(running[i] - share)) + 1
+        cuts.append(min(max(after, cuts[-1] + 1), len(ordered) - (n - k)))
+    cuts.append(len(ordered))
+    return [ordered[a:b] for a, b in itertools.pairwise(cuts)]
 
 
 def _cell_failed(cell: Cell, err: BaseException, details: str = "") -> CellBuildError:

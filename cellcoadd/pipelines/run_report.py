@@ -33,6 +33,7 @@ _PATCH_FIELDS = (
     "peak_rss_mb",
     "worker",
     "parts",
+    "parts_cpu_s",
 )
 
 

@@ -60,10 +60,42 @@ class PatchPlan:
     patch: Patch
     inputs: tuple[int, ...]
     files: tuple[tuple[str, int, int], ...] = field(repr=False)
+    #: each input's footprint on the tract: ``(4, 2)`` corners ``(x, y)``, tract pixels
+    footprints: tuple[np.ndarray, ...] = field(default=(), repr=False, compare=False)
 
     @property
     def index(self) -> tuple[int, int]:
         return self.patch.index
+
+    def cell_costs(self) -> dict[tuple[int, int], float]:
+        """The relative cost of building each cell: 1 plus the number of inputs whose
+        footprint covers the cell's outer box (those the cell may accept; an input that
+        only grazes it is rejected early and costs little).
+
+        The cost of a build is in its cell x input pairs, and they vary across a patch
+        (its band beside a neighbouring detector can hold twice those of the far band):
+        this is what cuts a patch into parts of equal cost and orders the patches.
+        """
+        cells = self.patch.cells
+        count = np.zeros(len(cells))
+        if self.footprints:
+            boxes = np.array(
+                [
+                    (b.x_start - 0.5, b.x_stop - 0.5, b.y_start - 0.5, b.y_stop - 0.5)
+                    for b in (cell.outer_bbox for cell in cells)
+                ]
+            )
+            xs, ys = boxes[:, [0, 1, 1, 0]], boxes[:, [2, 2, 3, 3]]
+            points = np.stack([xs, ys], axis=-1).reshape(-1, 2)  # each box's 4 corners
+            for start in range(0, len(self.footprints), 64):  # bounded memory
+                quads = np.stack(self.footprints[start : start + 64])  # (m, 4, 2)
+                edges = np.roll(quads, -1, axis=1) - quads
+                rel = points[None, None, :, :] - quads[:, :, None, :]  # (m, 4, p, 2)
+                cross = edges[:, :, None, 0] * rel[..., 1] - edges[:, :, None, 1] * rel[..., 0]
+                # inside a convex quad: on the same side of its four edges (either winding)
+                inside = np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)  # (m, p)
+                count += inside.reshape(len(quads), len(cells), 4).all(axis=2).sum(axis=0)
+        return {cell.index: 1.0 + n for cell, n in zip(cells, count, strict=True)}
 
 
 @dataclass(frozen=True)
@@ -114,7 +146,7 @@ def plan_tract(
             f"inputs of bands {bands} touch tract {tract_id} in {index.path}: give one band "
             "(a run builds one band)"
         )
-    assigned: dict[tuple[int, int], list[IndexedExposure]] = {}
+    assigned: dict[tuple[int, int], list[tuple[IndexedExposure, np.ndarray]]] = {}
     side = tract.config.patch_inner
     n = tract.config.patches_per_tract
     reach = tract.config.cell_inner * tract.config.patch_border_cells + tract.config.cell_border
@@ -130,7 +162,7 @@ def plan_tract(
         for py in range(max(lo_y, 0), min(hi_y, n - 1) + 1):
             for px in range(max(lo_x, 0), min(hi_x, n - 1) + 1):
                 if wanted is None or (px, py) in wanted:
-                    assigned.setdefault((px, py), []).append(row)
+                    assigned.setdefault((px, py), []).append((row, np.column_stack([x, y])))
     keys = sorted(assigned if wanted is None else wanted, key=lambda k: (k[1], k[0]))
     plans = []
     for key in keys:
@@ -138,8 +170,9 @@ def plan_tract(
         plans.append(
             PatchPlan(
                 patch=tract.patch(*key),
-                inputs=tuple(row.id for row in members),
-                files=tuple((f.path, f.size, f.mtime_ns) for row in members for f in row.files),
+                inputs=tuple(row.id for row, _ in members),
+                files=tuple((f.path, f.size, f.mtime_ns) for row, _ in members for f in row.files),
+                footprints=tuple(quad for _, quad in members),
             )
         )
     return TractPlan(tract=tract, band=band or (bands[0] if bands else None), patches=tuple(plans))
@@ -252,6 +285,7 @@ def write_patch_task(task: PatchTask, *parts: tuple[PatchCoadd, dict[str, Any]])
         "rejected_records": dict(sorted(rejected.items())),
         "depth": depth,
         "parts": len(parts),
+        "parts_cpu_s": [round(c["cpu_s"], 4) for c in costs],
         "wall_s": round(sum(c["wall_s"] for c in costs) + time.perf_counter() - wall, 4),
         "cpu_s": round(sum(c["cpu_s"] for c in costs) + time.process_time() - cpu, 4),
         "peak_rss_mb": round(max(_peak_rss_mb(), *(c["peak_rss_mb"] for c in costs)), 1),
@@ -433,6 +467,7 @@ def run_tract(
         }
         known = ledger.rows(tract_id)
         tasks: list[tuple[PatchTask, dict[str, Any]]] = []
+        costs: dict[tuple[int, int], dict[tuple[int, int], float]] = {}
         for item in plan.patches:
             target = output_path(out_dir, tract_id, item.index, fmt)
             files = [list(f) for f in item.files]
@@ -461,6 +496,8 @@ def run_tract(
             ledger.set(tract_id, item.index, state="pending", **record)
             task = PatchTask(index_path, item.patch, item.inputs, config_json, seed, str(target))
             tasks.append((task, record))
+            if workers > 1 or scheduler is not None:
+                costs[item.index] = item.cell_costs()
         run_id = ledger.start_run(command or " ".join(sys.argv), len(plan.patches))
 
         def done(task: PatchTask, record: dict[str, Any], outcome: Any, attempts: int) -> None:
@@ -489,7 +526,7 @@ def run_tract(
         if tasks:
             execute = _run_here if workers <= 1 and scheduler is None else _run_on_dask
             execute(tasks, done, retries=retries, workers=workers, scheduler=scheduler,
-                    progress=progress)  # fmt: skip
+                    progress=progress, costs=costs)  # fmt: skip
         ledger.finish_run(run_id, len(result.built), len(result.failed))
         result.wall_s = time.perf_counter() - start
         result.report, result.figure = write_report(
@@ -597,13 +634,15 @@ def _run_on_dask(
     workers: int,
     scheduler: object | None,
     progress: bool,
+    costs: dict[tuple[int, int], dict[tuple[int, int], float]],
 ) -> None:
-    """Build the patches as dask tasks, one per patch, largest first, the last ones cut into
-    parts when the patches do not share out evenly (:func:`parts_per_patch`: bands of
+    """Build the patches as dask tasks, one per patch, costliest first (``costs``: each
+    patch's cells' :meth:`PatchPlan.cell_costs`), the last ones cut into parts of equal
+    cost when the patches do not share out evenly (:func:`parts_per_patch`: bands of
     cells built by :func:`build_part_task`, gathered and written by
     :func:`write_patch_task` on a worker, never here); a failed patch is submitted again
     (``retries`` times); results are recorded as they arrive."""
-    from cellcoadd.builder.patch import blocks_of
+    from cellcoadd.builder.patch import parts_by_cost
 
     distributed = _import_distributed()
     if scheduler is None:
@@ -616,8 +655,8 @@ def _run_on_dask(
     try:
         attempts: dict[str, int] = {}
         meta: dict[str, tuple[PatchTask, dict[str, Any]]] = {}
-        # the largest first (inputs: the cost scales with them), the cut ones last
-        tasks = sorted(tasks, key=lambda item: -len(item[0].inputs))
+        # the costliest first, the cut ones last
+        tasks = sorted(tasks, key=lambda item: -sum(costs[item[0].patch.index].values()))
         n_parts = dict(
             zip(
                 (task.patch.index for task, _ in tasks),
@@ -642,7 +681,9 @@ def _run_on_dask(
                         pure=False,
                     )  # fmt: skip
                     for k, cells in enumerate(
-                        blocks_of(task.patch.cells, n_parts[task.patch.index])
+                        parts_by_cost(
+                            task.patch.cells, costs[task.patch.index], n_parts[task.patch.index]
+                        )
                     )
                 ]
                 future = client.submit(write_patch_task, task, *parts, key=key, pure=False)
