@@ -8,7 +8,9 @@ exposure files (default 12 x 9 = 108 files) of ``--ccd`` x ``--ccd`` px (default
 patch's outer box plus 100 px, 1100 px for 4 x 4 cells), one detector centred on each
 patch per visit (dithered, rotated), so that each covers its patch and each patch reads
 its own detector and its neighbours'. ``--cells 2 --ccd 520`` is the small job of the
-first measurements (fixed costs per worker then dominate a 2 s patch). The files
+first measurements (fixed costs per worker then dominate a 2 s patch); ``--cells 20``
+gives patches the size of an LSST patch (484 cells; 9.9 GB of inputs, and each run's 7.5
+GB of patch files, removed once hashed, so that ~20 GB of disk suffice). The files
 are indexed (``cellcoadd index``), then the whole tract is run with ``cellcoadd run``:
 
 * ``serial``: ``--workers 1`` (in the run's own process);
@@ -176,6 +178,12 @@ def _hashes(out: Path) -> dict[str, str]:
     }
 
 
+def _remove_patch_files(out: Path) -> None:
+    """Remove a run's patch files once hashed (its ledger and report stay): the runs of an
+    LSST-sized tract write 8 GB each."""
+    shutil.rmtree(out / "tract_0", ignore_errors=True)
+
+
 def _task_cpu(out: Path) -> float:
     """CPU s the patch tasks report (their processes' CPU while they ran): the rest of a
     run's CPU is start-up, planning, scheduling and bookkeeping."""
@@ -304,6 +312,7 @@ def main() -> None:
             # a long-lived cluster has imported and compiled already: one patch to warm it
             _cli([*base, "--out-dir", str(work / "warm-up"), "--scheduler", address, "--patch",
                   "0,0"])  # fmt: skip
+            _remove_patch_files(work / "warm-up")
             results: dict[str, list[dict]] = {}
             for round_ in range(args.repeats):
                 for mode, extra in (
@@ -323,12 +332,14 @@ def main() -> None:
                         "rss": _peak_worker_rss(out), "idle": idle,
                         "load": os.getloadavg()[0],
                     })  # fmt: skip
+                    _remove_patch_files(out)
             # peak RSS of a worker: one whole patch each (two patches on two workers: none
             # cut into parts), then every patch (fresh LocalClusters)
             one = work / "out-one"
             _cli([*base, "--out-dir", str(one), "--workers", "2", "--patch", "1,1", "--patch",
                   "0,1"])  # fmt: skip
             rss_one = _peak_worker_rss(one)
+            _remove_patch_files(one)
         finally:
             assert cluster.stdin is not None
             cluster.stdin.close()

@@ -174,8 +174,8 @@ def parts_by_cost(
     The cells are taken in file order (sorted by ``(cx, cy)``: columns one after the
     other), so each part is a band of whole columns with at most a piece of a column at
     each end, and the parts one after the other list the cells in sorted order. Each cut
-    falls where the running cost is nearest to its share; a part's cost exceeds the
-    ideal ``sum / n_parts`` by less than its costliest cell.
+    falls where the running cost is nearest to its share, so that no part's cost exceeds
+    the ideal ``sum / n_parts`` by more than the costliest cell's.
     """
     ordered = sorted(cells, key=lambda c: c.index)
     if not ordered:

@@ -11,8 +11,9 @@ still the one indexed, builds the patch with :func:`~cellcoadd.builder.build_pat
 (serially: one patch per worker at a time bounds its memory by one patch), writes it
 with :func:`cellcoadd.io.api.write` (atomic) and returns a summary of a few kB. When
 the patches do not share out evenly among the workers (nine patches on two), the last
-ones are cut into bands of cells built as separate tasks and put together by the worker
-that writes the file (the cells never come here). A patch's file is
+ones are cut into parts of equal estimated cost (cells x the inputs covering them, from
+the index's footprints) built as separate tasks and put together by the worker that
+writes the file (the cells never come here). A patch's file is
 therefore byte-identical to ``cellcoadd build`` of that patch with the same inputs, in
 the same order (visit, detector), configuration and seed.
 
