@@ -75,7 +75,8 @@ class PatchPlan:
 
         The cost of a build is in its cell x input pairs, and they vary across a patch
         (its band beside a neighbouring detector can hold twice those of the far band):
-        this is what cuts a patch into parts of equal cost and orders the patches.
+        this is what cuts a patch into parts of equal cost. About 0.15 s for 484 cells
+        and 800 inputs.
         """
         cells = self.patch.cells
         count = np.zeros(len(cells))
@@ -468,7 +469,7 @@ def run_tract(
         }
         known = ledger.rows(tract_id)
         tasks: list[tuple[PatchTask, dict[str, Any]]] = []
-        costs: dict[tuple[int, int], dict[tuple[int, int], float]] = {}
+        plans: dict[tuple[int, int], PatchPlan] = {}
         for item in plan.patches:
             target = output_path(out_dir, tract_id, item.index, fmt)
             files = [list(f) for f in item.files]
@@ -497,8 +498,7 @@ def run_tract(
             ledger.set(tract_id, item.index, state="pending", **record)
             task = PatchTask(index_path, item.patch, item.inputs, config_json, seed, str(target))
             tasks.append((task, record))
-            if workers > 1 or scheduler is not None:
-                costs[item.index] = item.cell_costs()
+            plans[item.index] = item
         run_id = ledger.start_run(command or " ".join(sys.argv), len(plan.patches))
 
         def done(task: PatchTask, record: dict[str, Any], outcome: Any, attempts: int) -> None:
@@ -527,7 +527,7 @@ def run_tract(
         if tasks:
             execute = _run_here if workers <= 1 and scheduler is None else _run_on_dask
             execute(tasks, done, retries=retries, workers=workers, scheduler=scheduler,
-                    progress=progress, costs=costs)  # fmt: skip
+                    progress=progress, plans=plans)  # fmt: skip
         ledger.finish_run(run_id, len(result.built), len(result.failed))
         result.wall_s = time.perf_counter() - start
         result.report, result.figure = write_report(
@@ -635,14 +635,14 @@ def _run_on_dask(
     workers: int,
     scheduler: object | None,
     progress: bool,
-    costs: dict[tuple[int, int], dict[tuple[int, int], float]],
+    plans: dict[tuple[int, int], PatchPlan],
 ) -> None:
-    """Build the patches as dask tasks, one per patch, costliest first (``costs``: each
-    patch's cells' :meth:`PatchPlan.cell_costs`), the last ones cut into parts of equal
-    cost when the patches do not share out evenly (:func:`parts_per_patch`: bands of
-    cells built by :func:`build_part_task`, gathered and written by
-    :func:`write_patch_task` on a worker, never here); a failed patch is submitted again
-    (``retries`` times); results are recorded as they arrive."""
+    """Build the patches as dask tasks, one per patch, largest first, the last ones cut into
+    parts of equal estimated cost when the patches do not share out evenly
+    (:func:`parts_per_patch`; :meth:`PatchPlan.cell_costs` of ``plans``: runs of cells
+    built by :func:`build_part_task`, gathered and written by :func:`write_patch_task`
+    on a worker, never here); a failed patch is submitted again (``retries`` times);
+    results are recorded as they arrive."""
     from cellcoadd.builder.patch import parts_by_cost
 
     distributed = _import_distributed()
@@ -656,8 +656,9 @@ def _run_on_dask(
     try:
         attempts: dict[str, int] = {}
         meta: dict[str, tuple[PatchTask, dict[str, Any]]] = {}
-        # the costliest first, the cut ones last
-        tasks = sorted(tasks, key=lambda item: -sum(costs[item[0].patch.index].values()))
+        # the largest first (inputs: the cost scales with them), the cut ones last; only
+        # those are costed cell by cell (~0.15 s for 484 cells and 800 inputs)
+        tasks = sorted(tasks, key=lambda item: -len(item[0].inputs))
         n_parts = dict(
             zip(
                 (task.patch.index for task, _ in tasks),
@@ -683,7 +684,9 @@ def _run_on_dask(
                     )  # fmt: skip
                     for k, cells in enumerate(
                         parts_by_cost(
-                            task.patch.cells, costs[task.patch.index], n_parts[task.patch.index]
+                            task.patch.cells,
+                            plans[task.patch.index].cell_costs(),
+                            n_parts[task.patch.index],
                         )
                     )
                 ]
