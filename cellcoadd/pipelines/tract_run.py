@@ -156,6 +156,7 @@ def plan_tract(
         x, y = tract.sky_to_pixel(row.corners[:, 0], row.corners[:, 1])
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
             continue  # 90 deg or more from the tract's tangent point
+        footprint = np.column_stack([x, y])  # shared by every patch it may touch
         # patches whose outer box (inner box + reach) overlaps the footprint's bounding box
         lo_x = int(np.floor((x.min() + 0.5 - reach) / side))
         hi_x = int(np.floor((x.max() + 0.5 + reach) / side))
@@ -164,7 +165,7 @@ def plan_tract(
         for py in range(max(lo_y, 0), min(hi_y, n - 1) + 1):
             for px in range(max(lo_x, 0), min(hi_x, n - 1) + 1):
                 if wanted is None or (px, py) in wanted:
-                    assigned.setdefault((px, py), []).append((row, np.column_stack([x, y])))
+                    assigned.setdefault((px, py), []).append((row, footprint))
     keys = sorted(assigned if wanted is None else wanted, key=lambda k: (k[1], k[0]))
     plans = []
     for key in keys:
