@@ -429,6 +429,15 @@ def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
     assert (out / "tract_0" / "patch_1_0.fits").read_bytes() == built.read_bytes()
     report = json.loads((out / "report.json").read_text())
     assert report["patches"][0]["inputs_used"] == 2
+    # the cost estimate from the TPV footprints in the index bounds what each cell used
+    with ExposureIndex(db, readonly=True) as index:
+        (item,) = plan_tract(index, SkyMap.from_json((tmp_path / "skymap.json").read_text()), 0,
+                             patches=[(1, 0)]).patches  # fmt: skip
+    costs = item.cell_costs()
+    with Ledger(out) as ledger:
+        depth = ledger.rows(0)[(0, (1, 0))].summary["depth"]
+    assert all(used <= costs[(cx, cy)] - 1 <= 2 for cx, cy, used in depth)
+    assert sum(used == costs[(cx, cy)] - 1 for cx, cy, used in depth) >= 0.5 * len(depth)
 
 
 def test_workers_without_dask_distributed_is_a_clear_error(field, tmp_path, monkeypatch):
