@@ -4,7 +4,7 @@ A patch build describes every input file once (``header()``: identity, band, zer
 mask bits, canonical WCS) and each worker then loads the part of each file its block of
 cells needs (``load_described``: the header already read, so only pixels). Timed here on
 a DES-layout file (``SCI``/``MSK``/``WGT``, the real DECam CCD's 255-card TPV header from
-``../shared/data/des``, plain and tile-compressed) and an LSST-layout file (TAN-SIP, ``MP_*``
+``tests/data/des``, plain and tile-compressed) and an LSST-layout file (TAN-SIP, ``MP_*``
 mask bits), 2048 x 4096 px, against references measured in the same run: fitsio's
 ``read_header`` of the image HDU (what reading one header costs fitsio) and a plain
 ``load(box)`` (which parses the headers again). Interleaved rounds, medians, load average
@@ -31,7 +31,8 @@ from cellcoadd.io.exposures.mef_layout import DES_LAYOUT, LSST_LAYOUT
 from cellcoadd.io.exposures.survey_readers import MefExposureFile
 from cellcoadd.model.psf import GalSimPsf
 
-DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"
+#: The real DECam CCD of the tests (GalSim's test data, BSD-3-Clause), in the repository.
+DES_DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "des"
 NY, NX = 4096, 2048
 #: A block of cells' cutout (as in a patch build: 2 x 4 cells of 250 px with borders).
 BOX = Box(x_start=600, x_stop=1300, y_start=1500, y_stop=1900)
@@ -106,19 +107,17 @@ def main() -> None:
     psf = GalSimPsf(galsim.Moffat(beta=3.5, fwhm=0.9))
     with tempfile.TemporaryDirectory() as directory:
         root = Path(directory)
-        files = {}
-        if (DES_DATA / "DECam_00154912_12_header.fits").is_file():
-            files["DES (TPV, 255 cards)"] = MefExposureFile(
+        files = {
+            "DES (TPV, 255 cards)": MefExposureFile(
                 write_des(root / "D00154912_r_c12_immasked.fits", None), DES_LAYOUT, psf
-            )
-            files["DES .fits.fz"] = MefExposureFile(
+            ),
+            "DES .fits.fz": MefExposureFile(
                 write_des(root / "D00154912_r_c12_immasked.fits.fz", "GZIP_2"), DES_LAYOUT, psf
-            )
-        else:
-            print(f"no DECam header in {DES_DATA}: the DES rows are left out")
-        files["LSST (TAN-SIP)"] = MefExposureFile(
-            write_lsst(root / "visit_image.fits"), LSST_LAYOUT, psf
-        )
+            ),
+            "LSST (TAN-SIP)": MefExposureFile(
+                write_lsst(root / "visit_image.fits"), LSST_LAYOUT, psf
+            ),
+        }
         print(machine_summary())
         print(
             f"per file, ms: medians of {args.rounds} interleaved rounds; files of {NX} x {NY} px;"

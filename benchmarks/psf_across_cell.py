@@ -12,7 +12,7 @@ varied, all covering every moved cell):
   FWHM +5% and a radial shear |g| = 0.01 at the corner of a DECam-sized focal plane, radius
   15000 pixels), the cell at 80% of the corner radius from the boresight in a different
   direction per exposure (the focal plane's outer CCDs, where the gradients are largest);
-* ``psfex``: the real DECam PSFEx model of ``/work/shared/data/des`` (exposure 154912,
+* ``psfex``: the real DECam PSFEx model of ``tests/data/des`` (exposure 154912,
   CCD 12), the cell centre at CCD pixels (1024 + 150 k, 2048 - 300 k) for exposure k;
 * ``constant``: the same Moffat everywhere: what resampling alone does (each position
   meets the exposures' pixels at another sub-pixel phase), the floor of the others.
@@ -40,7 +40,9 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.io import read_psfex
 from cellcoadd.sim.psf import focal_plane_psf
 
-PSFEX_FILE = Path("/work/shared/data/des/DECam_00154912_12_psfcat.psf")
+#: The real DECam CCD of the tests (GalSim's test data, BSD-3-Clause), in the repository.
+DES_DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "des"
+PSFEX_FILE = DES_DATA / "DECam_00154912_12_psfcat.psf"
 SCALE = 0.263
 CORNER = 15000.0
 DISTANCES = (0, 15, 30, 45, 60, 75)
@@ -162,9 +164,6 @@ def model_profile(kind: str) -> list[tuple[int, float, float, float, float, floa
 
 def main() -> None:
     for kind in ("constant", "sim", "psfex"):
-        if kind == "psfex" and not PSFEX_FILE.exists():
-            print(f"psfex: {PSFEX_FILE} not found, skipped")
-            continue
         print(f'{kind}, coadd PSF of moved cells: d (coadd px at 0.2"), dT/T, de1, de2')
         for direction, d, dT, de1, de2 in profile(kind):
             print(f"  {direction:<8} {d:3d}  {dT:+.2e}  {de1:+.2e}  {de2:+.2e}")

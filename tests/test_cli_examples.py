@@ -117,7 +117,8 @@ def _prepare(command: str, library: Path, work: Path) -> None:
     if command == "locate":
         shutil.copy(library / "sk.json", work / "skymap.json")
     if command == "init":  # a DES CCD (the real header) and an LSST visit image
-        from test_presets import DES_PSF, write_lsst, write_small_des
+        from conftest import DES_PSF
+        from test_presets import write_lsst, write_small_des
 
         (work / "des-ccds").mkdir()
         write_small_des(work / "des-ccds" / "D00154912_r_c12_r2369p01_immasked.fits.fz")

@@ -7,8 +7,8 @@ from __future__ import annotations
 import warnings
 
 import pytest
-from test_presets import DES_PSF, write_small_des
-from test_survey_readers import _need_des_files
+from conftest import DES_PSF
+from test_presets import write_small_des
 
 from cellcoadd.cli.main import main
 from cellcoadd.io import DES_LAYOUT, MefExposureFile
@@ -75,7 +75,6 @@ def test_config_show_prints_the_values_a_person_writes(capsys):
 
 def test_decam_files_load_without_warnings(tmp_path):
     """astropy's RADECSYS fix-up (and any other warning) stays inside the readers."""
-    _need_des_files()
     path = write_small_des(tmp_path / "D00154912_r_c12_r2369p01_immasked.fits.fz")
     with warnings.catch_warnings():
         warnings.simplefilter("error")

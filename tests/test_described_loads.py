@@ -7,16 +7,9 @@ import pickle
 
 import numpy as np
 import pytest
+from conftest import DES_PSF
 from exposure_factory import make_exposure
-from test_survey_readers import (
-    DES_PSF,
-    PSF,
-    _need_des_files,
-    des_planes,
-    des_tpv_wcs,
-    write_des,
-    write_lsst,
-)
+from test_survey_readers import PSF, des_planes, des_tpv_wcs, write_des, write_lsst
 
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
@@ -84,10 +77,6 @@ def sources(tmp_path_factory):
         "cellcoadd SIP": ExposureFile(_sip_exposure_file(root)),
         "LSST SIP": MefExposureFile(write_lsst(root / "visit_image.fits"), LSST_LAYOUT, PSF),
     }
-    try:
-        _need_des_files()
-    except pytest.skip.Exception:
-        return made
     des = write_des(root / "D00154912_Y_c12_r1p1_immasked.fits", des_planes())
     made["DES TPV"] = MefExposureFile(des, DES_LAYOUT, DES_PSF, zero_point=31.2)
     return made
@@ -95,8 +84,6 @@ def sources(tmp_path_factory):
 
 @pytest.mark.parametrize("name", ["cellcoadd SIP", "LSST SIP", "DES TPV"])
 def test_described_load_equals_plain_load(sources, name):
-    if name not in sources:
-        pytest.skip("the DES files are not present")
     source = sources[name]
     described = describe(source)
     assert isinstance(described, DescribedSource)
@@ -112,15 +99,12 @@ def test_described_load_equals_plain_load(sources, name):
 
 @pytest.mark.parametrize("name", ["cellcoadd SIP", "LSST SIP", "DES TPV"])
 def test_an_integer_shift_of_a_canonical_wcs_is_canonical(sources, name):
-    if name not in sources:
-        pytest.skip("the DES files are not present")
     wcs = sources[name].header().wcs
     for dx, dy in [(1, 0), (0, 7), (37, 58), (1023, 2047), (-5, 3)]:
         assert _is_canonical(shifted_wcs(wcs, dx, dy)), (dx, dy)
 
 
 def test_the_real_des_tpv_wcs_shifts_canonically():
-    _need_des_files()
     wcs = canonical_wcs(des_tpv_wcs())
     # -6470.667 - 1999 is not the double nearest -8469.667: a header round trip would
     # change it, the exact pickle keeps it, so the plain shift is canonical as it is

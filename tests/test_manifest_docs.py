@@ -3,7 +3,7 @@ reader, the three forms of each survey's example agree, every field is documente
 files named and laid out as the examples say are read through them.
 
 The files are written here with the surveys' structure: DES ``immasked`` files with the
-real DECam CCD header (``../shared/data/des``), LSST ``ExposureF`` files with ``MP_*``
+real DECam CCD header (``tests/data/des``), LSST ``ExposureF`` files with ``MP_*``
 planes, and a generic camera's ``FLUX``/``FLAGS``/``IVAR`` file with a TAN WCS.
 """
 
@@ -19,9 +19,10 @@ import fitsio
 import jsonschema
 import numpy as np
 import pytest
+from conftest import DES_PSF
 from survey_psf_factory import build_piff_model
 from test_presets import write_small_des
-from test_survey_readers import DES_PSF, _need_des_files, write_lsst
+from test_survey_readers import write_lsst
 
 from cellcoadd.io import read_manifest, sources_from_manifest
 from cellcoadd.io.exposures.mef_layout import MefLayout
@@ -97,7 +98,6 @@ def _write(directory: Path, name: str) -> Path:
 
 
 def test_des_example_reads_des_files(tmp_path):
-    _need_des_files()
     first = write_small_des(tmp_path / "D00154912_r_c12_r2369p01_immasked.fits.fz")
     write_small_des(tmp_path / "D00154913_r_c12_r2369p01_immasked.fits.fz", magzero=None)
     for stem in ("D00154912", "D00154913"):

@@ -3,7 +3,7 @@
 ``PhotoCalib`` (afw archive) read as a zero point.
 
 Files are written here with the survey's structure: DES ``SCI``/``MSK``/``WGT`` with the
-real DECam CCD header (``../shared/data/des``) on small planes, LSST ``ExposureF`` files
+real DECam CCD header (``tests/data/des``) on small planes, LSST ``ExposureF`` files
 with ``MP_*`` planes and an afw archive holding a ``PhotoCalib`` catalog.
 """
 
@@ -18,16 +18,8 @@ import fitsio
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_survey_readers import (
-    DES_HEADER,
-    DES_PSF,
-    LSST_PLANES,
-    PSF,
-    _need_des_files,
-    des_header_cards,
-    lsst_planes,
-    write_lsst,
-)
+from conftest import DES_PSF
+from test_survey_readers import LSST_PLANES, PSF, des_header_cards, lsst_planes, write_lsst
 
 from cellcoadd import BuildConfig
 from cellcoadd.builder.inputs import check_mask_bits
@@ -105,7 +97,6 @@ def write_small_des(path: Path, shape=(96, 64), magzero: float | None = 30.25) -
 
 
 def test_missing_bits_error_names_the_fitting_preset(tmp_path):
-    _need_des_files()
     path = write_small_des(tmp_path / "D00154912_r_c12_r2369p01_immasked.fits.fz")
     header = MefExposureFile(path, DES_LAYOUT, DES_PSF).header()
     with pytest.raises(InputError) as info:
@@ -209,7 +200,6 @@ def test_broken_photocalib_names_the_file_and_hdu(tmp_path):
 
 
 def test_init_writes_a_manifest_and_config_build_reads(tmp_path):
-    _need_des_files()
     (tmp_path / "ccds").mkdir()
     root = tmp_path / "ccds"
     names = ["D00154912_r_c12_r2369p01", "D00154913_r_c12_r2369p01", "D00154914_r_c12_r2369p01"]
@@ -271,6 +261,3 @@ def test_zero_point_helper_agrees_with_fluxmag0():
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
-
-
-assert DES_HEADER  # the real header is what write_small_des copies

@@ -6,13 +6,13 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from pathlib import Path
 
 import galsim
 import numpy as np
 import pytest
 from astropy.wcs import WCS
 from coadd_factory import make_patch
+from conftest import DES_PSF
 from exposure_factory import make_exposure
 
 from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
@@ -35,7 +35,6 @@ from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd
 from cellcoadd.model.psf import CallablePsf
 from cellcoadd.sim.psf import focal_plane_psf
 
-DES_PSF = Path("/work/shared/data/des/DECam_00154912_12_psfcat.psf")
 #: Default-sized cells (inner 150, border 50: outer 250 px at 0.2"/px).
 GRID = SkyMapConfig(cell_inner=150, cell_border=50, cells_per_patch=1, patches_per_tract=1)
 #: DECam's pixel scale, arcsec/px.
@@ -136,8 +135,6 @@ def test_stars_off_centre_match_psf_at_with_a_real_decam_psfex_model():
     resampling is exact and what remains is the model's variation across the cell, which
     psf_at interpolates to ~1e-5 (at 0.263"/px the resampling floor of this undersampled
     PSF, a few 1e-3 in T, would hide it: docs/shear.md)."""
-    if not DES_PSF.exists():
-        pytest.skip(f"{DES_PSF} not found")
     cell = _cell()
     model = read_psfex(DES_PSF)
     exposures = []

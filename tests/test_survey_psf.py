@@ -1,7 +1,7 @@
 """PSF models from survey files: a star drawn from the model equals the coadd PSF.
 
 The acceptance test of survey PSFs: exposures of 2048 x 4096 pixels with a real DECam
-TPV WCS (``../shared/data/des``) or a rotated TAN-SIP WCS, dithered so that one cell
+TPV WCS (``tests/data/des``) or a rotated TAN-SIP WCS, dithered so that one cell
 falls at very different places of the CCD in different exposures; a PSFEx model (and a
 Piff model) whose FWHM varies by > 5% across the CCD; a star drawn at every cell centre
 the way a survey user draws one (``DES_PSFEx.getPSF`` at the 1-based position,
@@ -10,7 +10,6 @@ the way a survey user draws one (``DES_PSFEx.getPSF`` at the 1-based position,
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import galsim
@@ -19,6 +18,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.wcs import WCS
+from conftest import DES_HEADER, DES_PSF
 from survey_psf_factory import build_piff_model, write_psfex_file
 
 from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
@@ -27,24 +27,12 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.io import read_piff, read_psfex
 from cellcoadd.model.psf import CallablePsf, GalSimPsf, ImagePsf, PsfexPsf
 
-DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"
-DES_HEADER = DES_DATA / "DECam_00154912_12_header.fits"
-DES_PSF = DES_DATA / "DECam_00154912_12_psfcat.psf"
 NX, NY = 2048, 4096
 # CCD-pixel shifts of the dithers: the same cell lands up to ~1500 px apart on the CCD
 DITHERS = [(0.0, 0.0), (610.3, 1480.7), (-540.6, -1330.2), (420.9, -760.4)]
 STAR_FLUX = 1.0e5
 BUILD = BuildConfig(n_noise=1, psf_size=31)
 SKY = SkyMapConfig(pixel_scale=0.2, cell_inner=60, cell_border=20, cells_per_patch=4)
-
-
-def _need_des_files() -> None:
-    if DES_HEADER.exists() and DES_PSF.exists():
-        return
-    message = f"the DES test files are not in {DES_DATA}"
-    if os.environ.get("CI"):
-        pytest.fail(message)
-    pytest.skip(message)
 
 
 def des_tpv_wcs(shift: tuple[float, float]) -> WCS:
@@ -172,7 +160,6 @@ def test_psfex_star_equals_coadd_psf(psfex_file, layout):
 def test_the_check_sees_a_pixel_applied_twice(psfex_file):
     """The same build with the PSFEx profile taken as pre-pixel (the old behaviour of a
     bare callable) fails the acceptance check: the test can tell right from wrong."""
-    _need_des_files()
     wcs_list = [des_tpv_wcs(shift) for shift in DITHERS[:2]]
     center = wcs_list[0].all_pix2world([NX / 2], [NY / 2], 0)
     cells = _cells((float(center[0][0]), float(center[1][0])))[:1]
@@ -192,7 +179,6 @@ def test_the_check_sees_a_pixel_applied_twice(psfex_file):
 def test_real_des_psfex_model_draws_where_galsim_does():
     """The real DECam model, drawn by PsfexPsf at 0-based (x, y), equals GalSim's
     DES_PSFEx at the 1-based position, and its size varies over the CCD."""
-    _need_des_files()
     model = read_psfex(DES_PSF)
     psfex = galsim.des.DES_PSFEx(str(DES_PSF))
     sizes = []
@@ -211,7 +197,6 @@ def test_real_des_psfex_model_draws_where_galsim_does():
 
 def _layout_wcs_list(layout: str) -> list[WCS]:
     if layout == "tpv":
-        _need_des_files()
         return [des_tpv_wcs(shift) for shift in DITHERS]
     return [rotated_sip_wcs(shift, (104.0, -55.0)) for shift in DITHERS]
 
