@@ -39,10 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.pipelines.bfd_validation import bfd_posterior
-from cellcoadd.pipelines.shear_validation import _group, run_pairs
-from cellcoadd.pipelines.stamp_pairs import bfd_noise_sigma, bfd_templates
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.bfd_validation import bfd_posterior
+from cellcoadd.pipelines.validation.shear_validation import _group, run_pairs
+from cellcoadd.pipelines.validation.stamp_pairs import bfd_noise_sigma, bfd_templates
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear.bfd import TemplatePrior, bias_from_sums, paired_terms
 from cellcoadd.shear.response import jackknife
 from cellcoadd.sim import SimConfig

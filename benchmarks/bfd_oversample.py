@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.pipelines.bfd_validation import bfd_posterior
-from cellcoadd.pipelines.shear_validation import run_pairs
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.bfd_validation import bfd_posterior
+from cellcoadd.pipelines.validation.shear_validation import run_pairs
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear.bfd import bias_from_sums, paired_terms
 from cellcoadd.shear.response import jackknife
 from cellcoadd.sim import SimConfig

@@ -7,7 +7,7 @@ where the paper has no row), the settings each row ran with, then what a given p
 (``--target-sigma``, default the paper's 4e-4) would cost. ``single`` rows (the first
 epoch alone, e.g. ``metacal-single``) can be added with ``--rows``.
 
-Presets (:mod:`cellcoadd.pipelines.bias_presets`): ``--preset none`` (default) runs every
+Presets (:mod:`cellcoadd.pipelines.validation.bias_presets`): ``--preset none`` (default) runs every
 row with the command line's S/N and ``--shear``; ``--preset high-snr`` runs S/N 10^4 with
 what each row needs there (BFD: the targets as templates, no ring partners, g1 = 1e-3;
 metacal and AnaCal: g1 = 0.02 and ring partners) and, unless ``--n-objects`` is given,
@@ -43,13 +43,13 @@ import os
 from typing import Any
 
 from cellcoadd.pipelines import validate_shear
-from cellcoadd.pipelines.bias_presets import (
+from cellcoadd.pipelines.validation.bias_presets import (
     HIGH_SNR_PAIRS,
     PRESETS,
     describe_settings,
     row_settings,
 )
-from cellcoadd.pipelines.bias_table import PAPER_TABLE1_ROWS, format_cut_comparison
+from cellcoadd.pipelines.validation.bias_table import PAPER_TABLE1_ROWS, format_cut_comparison
 
 #: sigma(m1) of the paper's metacal rows.
 PAPER_SIGMA_M = 4.0e-4

@@ -6,7 +6,7 @@ import galsim
 import numpy as np
 import pytest
 
-from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE
+from cellcoadd.pipelines.validation.validation_settings import BFD_OVERSAMPLE
 from cellcoadd.shear import bfd
 from cellcoadd.shear.bfd._prior import _half_plane, _inverse_shear
 

@@ -183,10 +183,10 @@ def test_validation_setting_reaches_the_prior():
     """``ValidationSettings.bfd_mirror`` builds the mirrored prior (twice the copies, the
     same total weight); at S/N 10^4 with the targets as templates each target sees only
     its own template, so Q/P is unchanged (docs/validation.md: 3e-9 in m1 over 200 pairs)."""
-    from cellcoadd.pipelines.bfd_validation import bfd_posterior
-    from cellcoadd.pipelines.shear_validation import run_pairs
-    from cellcoadd.pipelines.stamp_pairs import bfd_noise_sigma, bfd_templates
-    from cellcoadd.pipelines.validation_settings import ValidationSettings
+    from cellcoadd.pipelines.validation.bfd_validation import bfd_posterior
+    from cellcoadd.pipelines.validation.shear_validation import run_pairs
+    from cellcoadd.pipelines.validation.stamp_pairs import bfd_noise_sigma, bfd_templates
+    from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
     from cellcoadd.sim import SimConfig
 
     settings = ValidationSettings(

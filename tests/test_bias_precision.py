@@ -1,4 +1,4 @@
-"""The error model of m1 (``cellcoadd.pipelines.bias_precision``) and the forecast of
+"""The error model of m1 (``cellcoadd.pipelines.validation.bias_precision``) and the forecast of
 ``cellcoadd validate-shear`` that uses it."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import math
 import pytest
 
 from cellcoadd.cli.shear import expected_precision
-from cellcoadd.pipelines import bias_precision as model
-from cellcoadd.pipelines.bias_table import M_REQUIREMENT
+from cellcoadd.pipelines.validation import bias_precision as model
+from cellcoadd.pipelines.validation.bias_table import M_REQUIREMENT
 
 
 def test_scales_grow_with_the_noise():

@@ -9,12 +9,12 @@ import pytest
 
 from cellcoadd.errors import ConfigError
 from cellcoadd.pipelines import ValidationSettings
-from cellcoadd.pipelines.bias_presets import (
+from cellcoadd.pipelines.validation.bias_presets import (
     HIGH_SNR_PAIRS,
     describe_settings,
     row_settings,
 )
-from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE
+from cellcoadd.pipelines.validation.validation_settings import BFD_OVERSAMPLE
 from cellcoadd.sim import SimConfig
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "shear_bias.py"

@@ -18,8 +18,8 @@ from cellcoadd.pipelines import (
     format_bias_table,
     validate_shear,
 )
-from cellcoadd.pipelines.epoch_measurements import bfd_epoch_sum
-from cellcoadd.pipelines.shear_validation import measure_pairs
+from cellcoadd.pipelines.validation.epoch_measurements import bfd_epoch_sum
+from cellcoadd.pipelines.validation.shear_validation import measure_pairs
 from cellcoadd.shear import (
     MetacalEpoch,
     bfd,

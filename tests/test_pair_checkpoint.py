@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from cellcoadd.errors import ConfigError
-from cellcoadd.pipelines import shear_validation
-from cellcoadd.pipelines.shear_validation import PairCatalogue, run_pairs
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation import shear_validation
+from cellcoadd.pipelines.validation.shear_validation import PairCatalogue, run_pairs
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 
 # single-epoch metacal: the cheapest pair (~0.2 CPU s)
 SETTINGS = ValidationSettings(mode="single", method="metacal", seed=5, snr=(10.0, 50.0))

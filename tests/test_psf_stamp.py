@@ -13,7 +13,7 @@ from cellcoadd import BuildConfig, SkyMap, SkyMapConfig, build_cell, build_patch
 from cellcoadd.errors import ConfigError, PsfStampWarning
 from cellcoadd.model.build_config import DEFAULT_PSF_SIZE
 from cellcoadd.model.patch_coadd import FORMAT_VERSION
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 
 COADD_SCALE = 0.2
 EXPOSURE_SCALE = 0.26

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from cellcoadd.pipelines.stamp_pairs import measure_pair
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.stamp_pairs import measure_pair
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear import PAPER_CUTS, WMOM_CUTS, cuts_for_shape, measure_metacal
 from cellcoadd.shear.noise_correlation import (
     covariance_flux_variance,

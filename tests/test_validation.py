@@ -20,10 +20,14 @@ from cellcoadd.pipelines import (
     largest_cell_inner,
     validate_shear,
 )
-from cellcoadd.pipelines.bias_table import format_cut_comparison
-from cellcoadd.pipelines.shear_validation import RESULT_KEYS, cut_comparison, measure_pairs
-from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
-from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, stamp_cell
+from cellcoadd.pipelines.validation.bias_table import format_cut_comparison
+from cellcoadd.pipelines.validation.shear_validation import (
+    RESULT_KEYS,
+    cut_comparison,
+    measure_pairs,
+)
+from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue, measure_pair
+from cellcoadd.pipelines.validation.validation_settings import BFD_OVERSAMPLE, stamp_cell
 from cellcoadd.sim import SimConfig, WcsVariationConfig, simulate_object
 
 # Nearly noise free: the metacal error per object is ~1.5e-3 / (S/N / 1e4) in m, so a

@@ -8,7 +8,7 @@ import math
 import click
 
 from cellcoadd.cli.options import quiet_option
-from cellcoadd.pipelines.bias_precision import (
+from cellcoadd.pipelines.validation.bias_precision import (
     REFERENCE_SHEAR,
     SNR_CUT,
     TARGET_M_ERR,
@@ -17,7 +17,7 @@ from cellcoadd.pipelines.bias_precision import (
 )
 
 #: default --snr: high S/N isolates the coadd's own bias (its error on m1 is smallest:
-#: :mod:`cellcoadd.pipelines.bias_precision`)
+#: :mod:`cellcoadd.pipelines.validation.bias_precision`)
 DEFAULT_SNR = "10000"
 #: default --n-objects: about a minute of CPU, m1 to about +-2e-4 at the default S/N
 DEFAULT_N_OBJECTS = 100
@@ -252,10 +252,10 @@ def validate_shear(
     and a small shear (--shear 0.001: no third-order terms).
     """
     from cellcoadd.errors import ConfigError
-    from cellcoadd.pipelines.bias_table import format_bias_table, format_cut_comparison
-    from cellcoadd.pipelines.shear_validation import RESULT_KEYS
-    from cellcoadd.pipelines.shear_validation import validate_shear as run_validation
-    from cellcoadd.pipelines.validation_settings import check_method_mode
+    from cellcoadd.pipelines.validation.bias_table import format_bias_table, format_cut_comparison
+    from cellcoadd.pipelines.validation.shear_validation import RESULT_KEYS
+    from cellcoadd.pipelines.validation.shear_validation import validate_shear as run_validation
+    from cellcoadd.pipelines.validation.validation_settings import check_method_mode
 
     try:
         check_method_mode(method, mode)
@@ -333,7 +333,7 @@ def target_cost(m1_err: float, n_objects: int, cpu_seconds: float, target: float
 
 def expected_precision(snr_text: str | None, n_objects: int, shear: float = DEFAULT_SHEAR) -> str:
     """What error on m1 to expect before the run (the model of
-    :mod:`cellcoadd.pipelines.bias_precision`).
+    :mod:`cellcoadd.pipelines.validation.bias_precision`).
 
     The numbers are those measured at the input shear ``REFERENCE_SHEAR`` (0.02); with
     another ``shear`` the part of the error due to pixel noise scales as

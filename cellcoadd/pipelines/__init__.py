@@ -1,17 +1,18 @@
 """End-to-end runs that combine simulations, the builder and shear measurement.
 
 * :mod:`cellcoadd.pipelines.demo`: what ``cellcoadd demo`` (``make demo``) runs;
-* :mod:`cellcoadd.pipelines.stamp_pairs`: the paper's paired stamp simulations, built
-  into cells and measured (or measured on the epochs themselves:
-  :mod:`cellcoadd.pipelines.epoch_measurements`);
+* :mod:`cellcoadd.pipelines.validation.stamp_pairs`: the paper's paired stamp simulations,
+  built into cells and measured (or measured on the epochs themselves:
+  :mod:`cellcoadd.pipelines.validation.epoch_measurements`);
 * :mod:`cellcoadd.pipelines.tract_run`: tract runs from an exposure index on
   dask.distributed (``cellcoadd run``), with the run ledger
   (:mod:`~cellcoadd.pipelines.ledger`) and report (:mod:`~cellcoadd.pipelines.run_report`);
-* :mod:`cellcoadd.pipelines.shear_validation`: the shear-bias validation over many pairs
-  (``cellcoadd validate-shear``; BFD's and AnaCal's summaries in
-  :mod:`~cellcoadd.pipelines.bfd_validation` and :mod:`~cellcoadd.pipelines.anacal_validation`,
-  the per-row presets of ``benchmarks/shear_bias.py`` in
-  :mod:`~cellcoadd.pipelines.bias_presets`).
+* :mod:`cellcoadd.pipelines.validation.shear_validation`: the shear-bias validation over
+  many pairs (``cellcoadd validate-shear``; BFD's and AnaCal's summaries in
+  :mod:`~cellcoadd.pipelines.validation.bfd_validation` and
+  :mod:`~cellcoadd.pipelines.validation.anacal_validation`, the per-row presets of
+  ``benchmarks/shear_bias.py`` in :mod:`~cellcoadd.pipelines.validation.bias_presets`),
+  all in the sub-package :mod:`cellcoadd.pipelines.validation`.
 
 The names below are imported from their modules on first use, so that importing one
 pipeline module (say :mod:`cellcoadd.pipelines.simulation_files` for ``cellcoadd
@@ -26,23 +27,23 @@ from cellcoadd._lazy import lazy_exports
 
 #: public name -> module that defines it
 _EXPORTS: dict[str, str] = {
-    "M_REQUIREMENT": "cellcoadd.pipelines.bias_table",
-    "PAPER_TABLE1": "cellcoadd.pipelines.bias_table",
-    "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.bias_table",
-    "PairCatalogue": "cellcoadd.pipelines.stamp_pairs",
-    "format_bias_table": "cellcoadd.pipelines.bias_table",
-    "cut_comparison": "cellcoadd.pipelines.shear_validation",
-    "measure_pairs": "cellcoadd.pipelines.shear_validation",
-    "run_pairs": "cellcoadd.pipelines.shear_validation",
-    "summarize": "cellcoadd.pipelines.shear_validation",
-    "validate_shear": "cellcoadd.pipelines.shear_validation",
-    "EpochGeometry": "cellcoadd.pipelines.epoch_measurements",
-    "PairMeasurement": "cellcoadd.pipelines.stamp_pairs",
-    "ValidationSettings": "cellcoadd.pipelines.validation_settings",
-    "largest_cell_inner": "cellcoadd.pipelines.validation_settings",
-    "measure_pair": "cellcoadd.pipelines.stamp_pairs",
-    "measure_multi_epoch": "cellcoadd.pipelines.epoch_measurements",
-    "measure_single_epoch": "cellcoadd.pipelines.epoch_measurements",
+    "M_REQUIREMENT": "cellcoadd.pipelines.validation.bias_table",
+    "PAPER_TABLE1": "cellcoadd.pipelines.validation.bias_table",
+    "PAPER_TABLE1_ROWS": "cellcoadd.pipelines.validation.bias_table",
+    "PairCatalogue": "cellcoadd.pipelines.validation.stamp_pairs",
+    "format_bias_table": "cellcoadd.pipelines.validation.bias_table",
+    "cut_comparison": "cellcoadd.pipelines.validation.shear_validation",
+    "measure_pairs": "cellcoadd.pipelines.validation.shear_validation",
+    "run_pairs": "cellcoadd.pipelines.validation.shear_validation",
+    "summarize": "cellcoadd.pipelines.validation.shear_validation",
+    "validate_shear": "cellcoadd.pipelines.validation.shear_validation",
+    "EpochGeometry": "cellcoadd.pipelines.validation.epoch_measurements",
+    "PairMeasurement": "cellcoadd.pipelines.validation.stamp_pairs",
+    "ValidationSettings": "cellcoadd.pipelines.validation.validation_settings",
+    "largest_cell_inner": "cellcoadd.pipelines.validation.validation_settings",
+    "measure_pair": "cellcoadd.pipelines.validation.stamp_pairs",
+    "measure_multi_epoch": "cellcoadd.pipelines.validation.epoch_measurements",
+    "measure_single_epoch": "cellcoadd.pipelines.validation.epoch_measurements",
     "RunResult": "cellcoadd.pipelines.tract_run",
     "plan_tract": "cellcoadd.pipelines.tract_run",
     "run_tract": "cellcoadd.pipelines.tract_run",
@@ -76,24 +77,31 @@ __getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
 
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
-    from cellcoadd.pipelines.bias_table import (
+    from cellcoadd.pipelines.tract_run import RunResult, plan_tract, run_tract
+    from cellcoadd.pipelines.validation.bias_table import (
         M_REQUIREMENT,
         PAPER_TABLE1,
         PAPER_TABLE1_ROWS,
         format_bias_table,
     )
-    from cellcoadd.pipelines.epoch_measurements import (
+    from cellcoadd.pipelines.validation.epoch_measurements import (
         EpochGeometry,
         measure_multi_epoch,
         measure_single_epoch,
     )
-    from cellcoadd.pipelines.shear_validation import (
+    from cellcoadd.pipelines.validation.shear_validation import (
         cut_comparison,
         measure_pairs,
         run_pairs,
         summarize,
         validate_shear,
     )
-    from cellcoadd.pipelines.stamp_pairs import PairCatalogue, PairMeasurement, measure_pair
-    from cellcoadd.pipelines.tract_run import RunResult, plan_tract, run_tract
-    from cellcoadd.pipelines.validation_settings import ValidationSettings, largest_cell_inner
+    from cellcoadd.pipelines.validation.stamp_pairs import (
+        PairCatalogue,
+        PairMeasurement,
+        measure_pair,
+    )
+    from cellcoadd.pipelines.validation.validation_settings import (
+        ValidationSettings,
+        largest_cell_inner,
+    )

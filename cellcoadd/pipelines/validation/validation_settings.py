@@ -1,5 +1,7 @@
-"""Settings of the paired-simulation shear validation (:mod:`cellcoadd.pipelines.stamp_pairs`,
-:mod:`cellcoadd.pipelines.shear_validation`), and the cell the stamps are coadded into."""
+"""Settings of the paired-simulation shear validation
+(:mod:`cellcoadd.pipelines.validation.stamp_pairs`,
+:mod:`cellcoadd.pipelines.validation.shear_validation`), and the cell the stamps are coadded
+into."""
 
 from __future__ import annotations
 
@@ -70,7 +72,7 @@ class ValidationSettings(BaseModel):
     mode : {"coadd", "single", "multi-epoch"}
         Measure the cell coadd of all epochs, the first epoch alone, or all epochs jointly
         in their own pixels (metacal and BFD; see
-        :mod:`cellcoadd.pipelines.epoch_measurements`).
+        :mod:`cellcoadd.pipelines.validation.epoch_measurements`).
     seed : int
         Seed of the run; object ``i`` depends only on ``(seed, i)``.
     snr : (float, float), optional

@@ -38,7 +38,7 @@ REALISTIC_SNR_SCALES = (1.2, 2.2)
 #: Order of ``sigma(m1) * sqrt(N)`` at the paper's noise level.
 PAPER_NOISE_SCALE = 100.0
 #: The precision a run aims at: a 3-sigma test of the requirement ``|m1| < 1e-3``
-#: (:data:`cellcoadd.pipelines.bias_table.M_REQUIREMENT`).
+#: (:data:`cellcoadd.pipelines.validation.bias_table.M_REQUIREMENT`).
 TARGET_M_ERR = 3e-4
 
 

@@ -15,7 +15,8 @@ keyword arguments of :func:`~cellcoadd.pipelines.validate_shear`:
       independent sample overlaps a target's ~1e-4-wide likelihood), hence no ring
       partners (a partner would be a second template within the noise of a near-round
       target), a small input shear ``g1 = 1e-3`` (no third-order terms) and the default
-      k-space oversampling (:data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`).
+      k-space oversampling
+      (:data:`~cellcoadd.pipelines.validation.validation_settings.BFD_OVERSAMPLE`).
 
     :data:`HIGH_SNR_PAIRS` gives each row enough pairs for ``sigma_m <= 2e-4`` (about
     1e-4 expected from the per-pair scatter measured on smaller runs), about 20 CPU
@@ -27,7 +28,7 @@ from __future__ import annotations
 from typing import Any
 
 from cellcoadd.errors import ConfigError
-from cellcoadd.pipelines.validation_settings import BFD_OVERSAMPLE, check_method_mode
+from cellcoadd.pipelines.validation.validation_settings import BFD_OVERSAMPLE, check_method_mode
 
 #: Presets of :func:`row_settings`.
 PRESETS: tuple[str, ...] = ("none", "high-snr")

@@ -1,6 +1,6 @@
 """Measurements of one validation object on its epochs: single epoch and multi-epoch.
 
-What :func:`cellcoadd.pipelines.stamp_pairs.measure_pair` runs in ``mode="single"``
+What :func:`cellcoadd.pipelines.validation.stamp_pairs.measure_pair` runs in ``mode="single"``
 (:func:`measure_single_epoch`) and ``mode="multi-epoch"`` (:func:`measure_multi_epoch`),
 and the BFD record all modes share.
 
@@ -33,7 +33,7 @@ import numpy as np
 from cellcoadd.errors import MetacalError
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.exposure import Exposure
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import measure_metacal
 from cellcoadd.shear.multi_epoch import (

@@ -1,6 +1,6 @@
 """Summary of an AnaCal (FPFS) shear-bias validation run (``validate-shear --method anacal``).
 
-The pairs are measured by :func:`cellcoadd.pipelines.stamp_pairs.measure_pair` (AnaCal on
+The pairs are measured by :func:`cellcoadd.pipelines.validation.stamp_pairs.measure_pair` (AnaCal on
 the cell coadd, :mod:`cellcoadd.shear.anacal_adapter`); :func:`summarize_anacal` turns
 them into ``m1, c1, c2`` with jackknife errors, as the metacal summary does, each member's
 mean shear being ``<e> / <de/dg>`` over the pairs whose two members were measured.
@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from cellcoadd.errors import ShearError
-from cellcoadd.pipelines.bias_table import summary_fields
-from cellcoadd.pipelines.stamp_pairs import PairCatalogue
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.bias_table import summary_fields
+from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear.anacal_adapter import paired_bias
 
 

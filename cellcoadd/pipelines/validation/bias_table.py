@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from cellcoadd.pipelines.stamp_pairs import PairCatalogue
-from cellcoadd.pipelines.validation_settings import ValidationSettings, expected_inputs
+from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings, expected_inputs
 
 #: Metacalibration rows of the paper's Table 1: (m, 1-sigma error) on g1, by mode. The
 #: paper has no single-epoch row ("single" is our extra reference, the first epoch alone).
@@ -124,7 +124,7 @@ def format_bias_table(results: Sequence[dict[str, Any]]) -> str:
 
 def format_cut_comparison(result: dict[str, Any]) -> str:
     """A text table of a metacal result's ``"cut_comparison"``
-    (:func:`~cellcoadd.pipelines.shear_validation.cut_comparison`): ``m1`` per selection,
+    (:func:`~cellcoadd.pipelines.validation.shear_validation.cut_comparison`): ``m1`` per selection,
     its paired difference from no cuts (``dm1``) and the per-pair scatter."""
     lines = [
         f"{_label(result)}, {result['n_objects']} pairs: m1 by cuts (dm1: paired difference "

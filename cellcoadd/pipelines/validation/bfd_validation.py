@@ -1,9 +1,9 @@
 """Summary of a BFD shear-bias validation run (``validate-shear --method bfd``).
 
-The pairs are measured by :func:`cellcoadd.pipelines.stamp_pairs.measure_pair` (BFD
+The pairs are measured by :func:`cellcoadd.pipelines.validation.stamp_pairs.measure_pair` (BFD
 moments of the coadd, the first epoch or the summed epochs). :func:`bfd_posterior` builds
 the template prior for the targets' mean moment covariance
-(:func:`~cellcoadd.pipelines.stamp_pairs.bfd_templates`: an independent deep sample at 8
+(:func:`~cellcoadd.pipelines.validation.stamp_pairs.bfd_templates`: an independent deep sample at 8
 rotations, or the targets themselves unsheared at one) and each member's ``P, Q, R``;
 :func:`summarize_bfd` turns them into ``m1, c1, c2`` with jackknife errors
 (:func:`cellcoadd.shear.bfd.paired_bias`).
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from cellcoadd.errors import BfdError
-from cellcoadd.pipelines.bias_table import summary_fields
-from cellcoadd.pipelines.stamp_pairs import PairCatalogue, bfd_noise_sigma, bfd_templates
-from cellcoadd.pipelines.validation_settings import ValidationSettings
+from cellcoadd.pipelines.validation.bias_table import summary_fields
+from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue, bfd_noise_sigma, bfd_templates
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear import bfd
 
 
@@ -54,7 +54,7 @@ def bfd_posterior(
 ) -> BfdPosterior:
     """The template prior for the targets' mean moment covariance, and ``P, Q, R``.
 
-    ``templates``: the run's (:func:`~cellcoadd.pipelines.stamp_pairs.bfd_templates`),
+    ``templates``: the run's (:func:`~cellcoadd.pipelines.validation.stamp_pairs.bfd_templates`),
     made here when not given (then included in ``cpu_seconds``); a comparison of prior
     settings on the same pairs passes them to make them once.
 

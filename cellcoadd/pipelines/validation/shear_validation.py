@@ -13,7 +13,7 @@ with ``g+-`` the calibrated mean shears ``(R + R_S)^-1 <e>`` under the paper's c
 (S/N > 10, T/T_psf > 0.5; T/T_psf > 1 for ``wmom`` shapes,
 :data:`~cellcoadd.shear.response.WMOM_CUTS`) and jackknife errors over objects, a pair's
 two members removed together (:func:`cellcoadd.shear.multiplicative_bias`). What one object goes
-through is described in :mod:`cellcoadd.pipelines.stamp_pairs`.
+through is described in :mod:`cellcoadd.pipelines.validation.stamp_pairs`.
 
 Objects run in chunks on any ``concurrent.futures`` executor (a local process pool for
 ``workers > 1``, or a dask.distributed cluster); object ``i`` depends only on
@@ -33,15 +33,15 @@ from typing import Any, Literal
 import numpy as np
 from tqdm.auto import tqdm
 
-from cellcoadd.builder.executors import resolve_executor
 from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ConfigError, ShearError
-from cellcoadd.pipelines.anacal_validation import summarize_anacal
-from cellcoadd.pipelines.bfd_validation import summarize_bfd
-from cellcoadd.pipelines.bias_table import (
+from cellcoadd.execution.executors import resolve_executor
+from cellcoadd.pipelines.validation.anacal_validation import summarize_anacal
+from cellcoadd.pipelines.validation.bfd_validation import summarize_bfd
+from cellcoadd.pipelines.validation.bias_table import (
     summary_fields,
 )
-from cellcoadd.pipelines.stamp_pairs import PairCatalogue, measure_pair
-from cellcoadd.pipelines.validation_settings import (
+from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue, measure_pair
+from cellcoadd.pipelines.validation.validation_settings import (
     BFD_OVERSAMPLE,
     Method,
     Mode,
@@ -77,8 +77,8 @@ RESULT_KEYS: tuple[str, ...] = (
 
 
 def measure_pairs(settings: ValidationSettings, indices: Sequence[int]) -> PairCatalogue:
-    """:func:`~cellcoadd.pipelines.stamp_pairs.measure_pair` for each index, as a catalogue
-    (one task of a parallel run)."""
+    """:func:`~cellcoadd.pipelines.validation.stamp_pairs.measure_pair` for each index, as a
+    catalogue (one task of a parallel run)."""
     cell = stamp_cell(settings)
     return PairCatalogue.from_pairs([measure_pair(settings, index, cell) for index in indices])
 
@@ -294,14 +294,14 @@ def validate_shear(
         :func:`cellcoadd.builder.build_cell`. ``"multi-epoch"``: all epochs jointly in
         their own pixels (metacal: per-epoch metacal images with one common reconvolution
         PSF and a joint shape; BFD: the sum of the epochs' moments; see
-        :mod:`cellcoadd.pipelines.epoch_measurements`). ``"single"``: the first epoch
+        :mod:`cellcoadd.pipelines.validation.epoch_measurements`). ``"single"``: the first epoch
         alone (metacal, BFD, AnaCal).
     n_objects : int
         Number of objects (each simulated as a +g / -g pair).
     snr : float or (float, float), optional
         Fixed target S/N or a range drawn uniformly per object; the optimal S/N of the
         measured noise-free data sets the pixel noise (see
-        :mod:`cellcoadd.pipelines.stamp_pairs`). None: the simulation's noise level.
+        :mod:`cellcoadd.pipelines.validation.stamp_pairs`). None: the simulation's noise level.
     seed : int
         Seed of the run.
     workers : int
@@ -325,7 +325,7 @@ def validate_shear(
     coadd_pixel_scale : float
         Coadd pixel scale, arcsec (0.2, the LSST-like default of cellcoadd; 0.27 puts
         the coadd on the exposures' nominal scale); the cell size follows
-        (:func:`~cellcoadd.pipelines.validation_settings.largest_cell_inner`).
+        (:func:`~cellcoadd.pipelines.validation.validation_settings.largest_cell_inner`).
     reconvolution_psf : {"gauss", "fitgauss", "dilate"}
         Metacal reconvolution PSF.
     return_measurements : bool
@@ -334,7 +334,7 @@ def validate_shear(
         Metacal: also :func:`cut_comparison` of the pairs under ``"cut_comparison"``.
     method : {"metacal", "bfd", "anacal"}
         Shear method (AnaCal: FPFS, coadd or single mode; BFD: noise level fixed per run,
-        see :mod:`cellcoadd.pipelines.stamp_pairs`).
+        see :mod:`cellcoadd.pipelines.validation.stamp_pairs`).
     shape : {"admom", "wmom"}
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
     wmom_fwhm : float
@@ -349,7 +349,7 @@ def validate_shear(
         (the high-S/N check; see :class:`~cellcoadd.pipelines.ValidationSettings`).
     bfd_oversample : int
         k-space oversampling of the BFD moments (default
-        :data:`~cellcoadd.pipelines.validation_settings.BFD_OVERSAMPLE`, 4: accurate
+        :data:`~cellcoadd.pipelines.validation.validation_settings.BFD_OVERSAMPLE`, 4: accurate
         shear derivatives for small galaxies; 1, the stamp's own FFT grid, biases m1 by
         a few per cent; see ``docs/validation.md``).
     bfd_mirror : bool

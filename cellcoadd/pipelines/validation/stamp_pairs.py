@@ -22,7 +22,7 @@ run with seed ``s``:
    realization (same ``sigma``, independent of the image noise); ``multi-epoch`` mode
    measures all epochs jointly in their own pixels, each with its own PSF drawn that way
    and its own noise realization (the first one is single mode's):
-   :mod:`cellcoadd.pipelines.epoch_measurements`.
+   :mod:`cellcoadd.pipelines.validation.epoch_measurements`.
 
 **Ring partners** (``rotated_partners``, default): objects ``2k`` and ``2k + 1`` are the
 same galaxy, PSFs, shifts and WCSs with the intrinsic ellipticity of ``2k + 1`` turned by
@@ -35,9 +35,9 @@ realizations (keyed by their own index).
 (``shape="wmom"``). ``method="bfd"`` measures the BFD moments of the coadd (or the first
 epoch, or the sum of the epochs' moments) with their covariance from the cell's noise
 realization (white noise of the known level in single and multi-epoch modes); the
-template prior and the shear are made from all the objects
-(:func:`bfd_templates`, :func:`cellcoadd.pipelines.shear_validation.summarize`). BFD needs
-one moment covariance for all targets, so its noise level is the same for every object:
+template prior and the shear are made from all the objects (:func:`bfd_templates`,
+:func:`cellcoadd.pipelines.validation.shear_validation.summarize`). BFD needs one moment
+covariance for all targets, so its noise level is the same for every object:
 ``sigma = S_ref / snr``, ``S_ref`` the median ``sqrt(sum I^2)`` of the template sample,
 ``snr`` the geometric mean of the target range (the median object has that S/N).
 ``method="anacal"`` measures FPFS shapes and their analytic shear responses through AnaCal
@@ -69,7 +69,7 @@ from cellcoadd.io._files.atomic import atomic_write
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
-from cellcoadd.pipelines.epoch_measurements import (
+from cellcoadd.pipelines.validation.epoch_measurements import (
     BFD_DTYPE,
     EpochGeometry,
     bfd_epoch_sum,
@@ -79,7 +79,7 @@ from cellcoadd.pipelines.epoch_measurements import (
     measure_multi_epoch,
     measure_single_epoch,
 )
-from cellcoadd.pipelines.validation_settings import ValidationSettings, stamp_cell
+from cellcoadd.pipelines.validation.validation_settings import ValidationSettings, stamp_cell
 from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
@@ -141,9 +141,9 @@ class PairCatalogue:
         For each metacal type, the :data:`~cellcoadd.shear.metacal.SHAPE_DTYPE` rows of the
         ``+g`` and ``-g`` members, aligned with ``index`` (what
         :func:`~cellcoadd.shear.multiplicative_bias` takes); for BFD the
-        :data:`~cellcoadd.pipelines.epoch_measurements.BFD_DTYPE` rows under ``"bfd"``.
+        :data:`~cellcoadd.pipelines.validation.epoch_measurements.BFD_DTYPE` rows under ``"bfd"``.
     noise_sigma, snr, n_inputs, cpu_seconds : ndarray
-        Per object, as in :class:`~cellcoadd.pipelines.stamp_pairs.PairMeasurement`.
+        Per object, as in :class:`~cellcoadd.pipelines.validation.stamp_pairs.PairMeasurement`.
     """
 
     index: np.ndarray
