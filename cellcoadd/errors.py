@@ -26,7 +26,9 @@ is kept as a mixin, so ``except ValueError`` written against older versions stil
   file. Readers never signal damage with a builtin exception.
 - An in-memory coadd that is malformed: :class:`InvalidCoaddError`.
 - An input exposure that cannot be used: :class:`InputError`, or its :class:`ExposureError`
-  (malformed at construction) and :class:`PsfError` (the PSF cannot be drawn); a PSF
+  (malformed at construction), :class:`PsfError` (the PSF cannot be drawn) and
+  :class:`IndexRowError` (an exposure-index row that disagrees with its checksum or its
+  file: ``row=``, ``fields=``); a PSF
   description that cannot be encoded or decoded: :class:`PsfCodecError`.
 - A build that cannot proceed: :class:`BuildError`; one cell failed: :class:`CellBuildError`;
   a pixel mapping out of tolerance: :class:`MappingError`.
@@ -72,7 +74,8 @@ their facts (they cross process boundaries in parallel builds)::
     │   ├── InvalidCoaddError                 an in-memory coadd is malformed
     │   ├── InputError                        an input exposure is unusable
     │   │   ├── ExposureError                 ... malformed at construction
-    │   │   └── PsfError                      ... its PSF model cannot be drawn
+    │   │   ├── PsfError                      ... its PSF model cannot be drawn
+    │   │   └── IndexRowError                 ... its index row disagrees with the file
     │   ├── PsfCodecError                     a PSF description cannot be encoded/decoded
     │   └── ShearError                        a shear measurement cannot run
     │       ├── MetacalError                  ... metacalibration
@@ -128,6 +131,7 @@ __all__ = [
     "EmptyCellError",
     "ExposureError",
     "GeometryError",
+    "IndexRowError",
     "InputError",
     "InvalidCoaddError",
     "MappingError",
@@ -290,6 +294,24 @@ class InvalidCoaddError(CellCoaddValueError):
 
 class InputError(CellCoaddValueError):
     """An input exposure cannot be used; names it by visit and detector."""
+
+
+class IndexRowError(InputError):
+    """A row of the exposure index disagrees with its checksum or with the file it
+    describes: ``path`` is the file, ``row`` the row id, ``fields`` the stored fields
+    that differ (empty when only the checksum says so)."""
+
+    def __init__(
+        self,
+        message: str = "",
+        *,
+        row: int | None = None,
+        fields: tuple[str, ...] = (),
+        **facts: Any,
+    ) -> None:
+        super().__init__(message, **facts)
+        self.row = row
+        self.fields = tuple(fields)
 
 
 class ExposureError(InputError):

@@ -86,6 +86,7 @@ def make_exposure(
     zero_point: float = 30.0,
     valid_box: Box | None = None,
     seed: int = 0,
+    band: str = "r",
 ) -> Exposure:
     psf = psf or galsim.Moffat(beta=3.5, fwhm=0.9)
     wcs = make_wcs(center, shape, pixel_scale, rotation_deg, offset, shear, sip)
@@ -99,7 +100,7 @@ def make_exposure(
         psf=psf,
         visit=visit,
         detector=detector,
-        band="r",
+        band=band,
         zero_point=zero_point,
         valid_box=valid_box,
     )

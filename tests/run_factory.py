@@ -64,3 +64,58 @@ def write_field(
             write_exposure(exposure, path, overwrite=True)
             paths.append(path)
     return paths
+
+
+#: two tracts side by side, overlapping by ~4 arcsec (their inner regions meet at RA 0.0045)
+SURVEY_CENTERS = ((0.0, -30.0), (0.009, -30.0))
+
+
+def survey_skymap(patches_per_tract: int = 2) -> SkyMap:
+    """Two small tracts of ``patches_per_tract`` squared patches (see :data:`SKYMAP_CONFIG`)."""
+    config = SKYMAP_CONFIG.model_copy(update={"patches_per_tract": patches_per_tract})
+    return SkyMap.from_centers(list(SURVEY_CENTERS), config)
+
+
+def write_survey(
+    root: Path,
+    bands: tuple[str, ...] = ("g", "r"),
+    n_visits: int = 2,
+    *,
+    patches_per_tract: int = 2,
+    shape: tuple[int, int] = (110, 110),
+) -> list[Path]:
+    """Exposure files over both tracts of :func:`survey_skymap` in every band: per band
+    and visit, one detector centred on each patch of each tract (dithered, SIP on odd
+    visits); ``{band}-visit{v}-det{d}.fits`` in ``root``. Visits are numbered across bands
+    (band k has visits ``k * 100 + v``)."""
+    root.mkdir(parents=True, exist_ok=True)
+    sky = survey_skymap(patches_per_tract)
+    paths = []
+    for k, band in enumerate(bands):
+        rng = np.random.default_rng(k)
+        for v in range(n_visits):
+            visit = k * 100 + v
+            detector = 0
+            for tract in sky:
+                for patch in tract.patches:
+                    box = patch.inner_bbox
+                    x = (box.x_start + box.x_stop - 1) / 2 + rng.uniform(-3, 3)
+                    y = (box.y_start + box.y_stop - 1) / 2 + rng.uniform(-3, 3)
+                    ra, dec = tract.pixel_to_sky(x, y)
+                    exposure = make_exposure(
+                        (float(ra[0]), float(dec[0])),
+                        shape=shape,
+                        pixel_scale=0.2,
+                        rotation_deg=float(rng.uniform(0, 2)),
+                        sip=v % 2 == 1,
+                        noise_sigma=1.0,
+                        visit=visit,
+                        detector=detector,
+                        seed=visit * 100 + detector,
+                        band=band,
+                    )
+                    path = root / f"{band}-visit{visit}-det{detector}.fits"
+                    write_exposure(exposure, path, overwrite=True)
+                    paths.append(path)
+                    detector += 1
+    return paths

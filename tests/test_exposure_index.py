@@ -181,7 +181,7 @@ def test_index_and_ledger_paths_go_through_the_path_gate(tmp_path):
     """A FIFO or a directory where an index or a ledger should be is refused, named,
     before SQLite opens it (a FIFO would hang the open); odd characters in a read-only
     index's path are not taken for URI syntax."""
-    from cellcoadd.pipelines.ledger import Ledger
+    from cellcoadd.pipelines.survey.ledger import Ledger
 
     fifo = tmp_path / "inputs.sqlite"
     os.mkfifo(fifo)

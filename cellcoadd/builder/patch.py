@@ -47,11 +47,11 @@ from tqdm.auto import tqdm
 
 from cellcoadd._version import __version__
 from cellcoadd.builder.cell import CellBlock
-from cellcoadd.builder.executors import dask_client, resolve_executor
 from cellcoadd.builder.exposure_frame import ExposureFrame
 from cellcoadd.builder.inputs import BuildInput, BuildSettings, PreparedBuild, prepare
 from cellcoadd.builder.psf import PsfLoss, psf_loss, warn_psf_losses
 from cellcoadd.errors import CellBuildError, ConfigError, InvalidCoaddError
+from cellcoadd.execution.executors import dask_client, resolve_executor
 from cellcoadd.geometry.tract import Cell, Patch
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -476,14 +476,14 @@ def build_patch(
     ``MALLOC_TRIM_THRESHOLD_=65536`` from dask's ``distributed.nanny.pre-spawn-environ``
     setting, which makes glibc map and unmap every array above 128 kB: cells then build
     up to ~1.9x slower than in a plain process; dask's profiler and monitors add 10-14%
-    CPU. :data:`~cellcoadd.builder.executors.DASK_WORKER_CONFIG` restores the speed; set
+    CPU. :data:`~cellcoadd.execution.settings.DASK_WORKER_CONFIG` restores the speed; set
     it before the cluster starts::
 
         dask.config.set(DASK_WORKER_CONFIG)
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1)
 
     or, for workers started elsewhere (``dask worker``, a job script), put
-    :func:`~cellcoadd.builder.executors.dask_worker_environment` in their environment.
+    :func:`~cellcoadd.execution.settings.dask_worker_environment` in their environment.
     Results are identical either way.
     """
     stream = stream_patch(

@@ -10,7 +10,7 @@ array: a third of a patch build's system CPU, ~8% of the whole (2.9 s of 18 s on
 given in the environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``) win;
 a program using the library from Python can set the same environment variables before it
 starts. Dask workers get the same through
-:data:`cellcoadd.builder.executors.DASK_WORKER_CONFIG`.
+:data:`cellcoadd.execution.settings.DASK_WORKER_CONFIG` (the numbers have their one home there).
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ import ctypes
 import os
 import sys
 
-#: ``mallopt`` parameters (glibc's malloc.h) and the values the command sets.
+from cellcoadd.execution.settings import MMAP_THRESHOLD, TRIM_THRESHOLD
+
+#: ``mallopt`` parameters (glibc's malloc.h); the values are in :mod:`cellcoadd.execution.settings`
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
-MMAP_THRESHOLD = 32 * 2**20
-TRIM_THRESHOLD = 256 * 2**20
 
 
 def keep_freed_memory() -> bool:

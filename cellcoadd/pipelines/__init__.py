@@ -4,9 +4,10 @@
 * :mod:`cellcoadd.pipelines.validation.stamp_pairs`: the paper's paired stamp simulations,
   built into cells and measured (or measured on the epochs themselves:
   :mod:`cellcoadd.pipelines.validation.epoch_measurements`);
-* :mod:`cellcoadd.pipelines.tract_run`: tract runs from an exposure index on
-  dask.distributed (``cellcoadd run``), with the run ledger
-  (:mod:`~cellcoadd.pipelines.ledger`) and report (:mod:`~cellcoadd.pipelines.run_report`);
+* :mod:`cellcoadd.pipelines.survey`: survey runs from an exposure index on
+  dask.distributed (``cellcoadd run``: every band and tract), with the run ledger
+  (:mod:`~cellcoadd.pipelines.survey.ledger`) and reports
+  (:mod:`~cellcoadd.pipelines.survey.report`);
 * :mod:`cellcoadd.pipelines.validation.shear_validation`: the shear-bias validation over
   many pairs (``cellcoadd validate-shear``; BFD's and AnaCal's summaries in
   :mod:`~cellcoadd.pipelines.validation.bfd_validation` and
@@ -44,9 +45,10 @@ _EXPORTS: dict[str, str] = {
     "measure_pair": "cellcoadd.pipelines.validation.stamp_pairs",
     "measure_multi_epoch": "cellcoadd.pipelines.validation.epoch_measurements",
     "measure_single_epoch": "cellcoadd.pipelines.validation.epoch_measurements",
-    "RunResult": "cellcoadd.pipelines.tract_run",
-    "plan_tract": "cellcoadd.pipelines.tract_run",
-    "run_tract": "cellcoadd.pipelines.tract_run",
+    "RunResult": "cellcoadd.pipelines.survey",
+    "plan_tract": "cellcoadd.pipelines.survey",
+    "run_survey": "cellcoadd.pipelines.survey",
+    "run_tract": "cellcoadd.pipelines.survey",
 }
 
 __all__ = [
@@ -67,6 +69,7 @@ __all__ = [
     "measure_single_epoch",
     "plan_tract",
     "run_pairs",
+    "run_survey",
     "run_tract",
     "summarize",
     "validate_shear",
@@ -77,7 +80,7 @@ __getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
 
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
-    from cellcoadd.pipelines.tract_run import RunResult, plan_tract, run_tract
+    from cellcoadd.pipelines.survey import RunResult, plan_tract, run_survey, run_tract
     from cellcoadd.pipelines.validation.bias_table import (
         M_REQUIREMENT,
         PAPER_TABLE1,

@@ -30,7 +30,6 @@ region, and a few more: the builder's selection is exact.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sqlite3
@@ -45,25 +44,36 @@ from typing import Any
 import hpgeom
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError, CellCoaddFormatError
+from cellcoadd.errors import CellCoaddError, CellCoaddFormatError, IndexRowError
 from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.footprint import (
+    FOOTPRINT_MARGIN,
+    healpix_pixels,
+    polygon_area,
+    sky_corners,
+)
 from cellcoadd.geometry.wcs_utils import canonical_wcs
 from cellcoadd.io._files.path_gate import gate_read, gate_write
+from cellcoadd.io._files.sqlite_files import open_own_database
+from cellcoadd.io._files.stamps import FileStamp, json_sha256
 from cellcoadd.model.manifest import Manifest, ManifestEntry
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 
-#: Version of the tables below; an index of another version is refused.
-SCHEMA_VERSION = 1
+#: Version of the tables below (``PRAGMA user_version``); an index of another version is
+#: refused. 2: each row carries a checksum of its stored fields and its footprint's pixel
+#: count.
+SCHEMA_VERSION = 2
+
+#: ``PRAGMA application_id`` of an exposure index ("CCXI"): a SQLite file without it is
+#: not ours, and is refused unmodified.
+APPLICATION_ID = 0x43435849
 
 #: Default HEALPix resolution of the spatial key: nside 512 pixels are 6.9 arcmin on a side,
 #: so an LSST detector (13 arcmin) or a DECam CCD (9 x 18 arcmin) overlaps ~6 to 12 of them
 #: and an LSST patch (~10 arcmin) about as many.
 DEFAULT_NSIDE = 512
-
-#: Pixels by which a footprint's corners are pushed outward (distortion between corners).
-FOOTPRINT_MARGIN = 8.0
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -89,7 +99,10 @@ CREATE TABLE IF NOT EXISTS exposures (
     size INTEGER NOT NULL,
     mtime_ns INTEGER NOT NULL,
     sha256 TEXT,
-    indexed REAL NOT NULL
+    indexed REAL NOT NULL,
+    header_sha256 TEXT,
+    n_pixels INTEGER NOT NULL DEFAULT 0,
+    checksum TEXT NOT NULL
 );
 CREATE TABLE IF NOT EXISTS footprint (
     pixel INTEGER NOT NULL,
@@ -151,77 +164,25 @@ def header_from_json(text: str) -> ExposureHeader:
 
 def footprint_corners(header: ExposureHeader, margin: float = FOOTPRINT_MARGIN) -> np.ndarray:
     """RA/Dec (deg) of the corners of the valid box, pushed outward by ``margin`` pixels,
-    in order around the box: shape ``(4, 2)``."""
-    box = header.valid_box
-    x0, x1 = box.x_start - 0.5 - margin, box.x_stop - 0.5 + margin
-    y0, y1 = box.y_start - 0.5 - margin, box.y_stop - 0.5 + margin
-    x = np.array([x0, x1, x1, x0])
-    y = np.array([y0, y0, y1, y1])
-    ra, dec = header.wcs.all_pix2world(x, y, 0)
-    return np.column_stack([np.mod(ra, 360.0), dec])
-
-
-def polygon_pixels(nside: int, corners: np.ndarray) -> np.ndarray:
-    """Nested HEALPix pixels overlapping the convex polygon ``corners`` ((n, 2) RA/Dec, deg)."""
-    return np.asarray(
-        hpgeom.query_polygon(nside, corners[:, 0], corners[:, 1], inclusive=True, nest=True),
-        dtype=np.int64,
-    )
-
-
-def polygon_area(corners: np.ndarray) -> float:
-    """Area of a small convex polygon (RA/Dec deg corners), deg^2, on its tangent plane."""
-    ra, dec = np.radians(corners[:, 0]), np.radians(corners[:, 1])
-    xyz = np.column_stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
-    centre = xyz.mean(axis=0)
-    centre /= np.linalg.norm(centre)
-    east = np.cross([0.0, 0.0, 1.0], centre)
-    east = east / np.linalg.norm(east) if np.linalg.norm(east) > 1e-12 else np.array([0, 1.0, 0])
-    north = np.cross(centre, east)
-    scale = xyz @ centre  # gnomonic projection
-    u, v = (xyz @ east) / scale, (xyz @ north) / scale
-    area = 0.5 * abs(np.dot(u, np.roll(v, -1)) - np.dot(v, np.roll(u, -1)))
-    return float(np.degrees(np.degrees(area)))
+    in order around the box: shape ``(4, 2)``
+    (:func:`~cellcoadd.geometry.footprint.sky_corners`)."""
+    return sky_corners(header.wcs, header.valid_box, margin)
 
 
 # -- rows -------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class FileStamp:
-    """A file as it was when indexed: path, size (bytes), mtime (ns), SHA-256 (or None)."""
-
-    path: str
-    size: int
-    mtime_ns: int
-    sha256: str | None = None
-
-    @classmethod
-    def of(cls, path: str, checksum: bool = False) -> FileStamp:
-        info = os.stat(path)
-        digest = file_sha256(path) if checksum else None
-        return cls(path, int(info.st_size), int(info.st_mtime_ns), digest)
-
-    def changed(self, checksum: bool = False) -> str | None:
-        """Why the file on disk is no longer this one (None: unchanged)."""
-        try:
-            now = os.stat(self.path)
-        except FileNotFoundError:
-            return f"{self.path} vanished"
-        if int(now.st_size) != self.size or int(now.st_mtime_ns) != self.mtime_ns:
-            return f"{self.path} changed (size/mtime)"
-        if checksum and self.sha256 is not None and file_sha256(self.path) != self.sha256:
-            return f"{self.path} changed (checksum)"
-        return None
+#: The stored fields of a row that its checksum covers (the header through its SHA-256).
+CHECKED_FIELDS = (
+    "path", "status", "reason", "entry", "layout", "psf", "visit", "detector", "band",
+    "zero_point", "nx", "ny", "valid_box", "corners", "area_deg2", "header_sha256", "files",
+    "size", "mtime_ns", "sha256", "n_pixels",
+)  # fmt: skip
 
 
-def file_sha256(path: str) -> str:
-    """SHA-256 of a file's bytes, hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        while chunk := file.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
+def row_checksum(values: dict[str, Any]) -> str:
+    """SHA-256 of a row's :data:`CHECKED_FIELDS` (canonical JSON)."""
+    return json_sha256({name: values.get(name) for name in CHECKED_FIELDS})
 
 
 @dataclass(frozen=True)
@@ -229,7 +190,8 @@ class IndexedExposure:
     """One usable input of the index (an ``ok`` row): how to open it and its header.
 
     The stored JSON is parsed when first asked for, so that a query returning hundreds
-    of rows costs little more than reading them.
+    of rows costs little more than reading them. Rows are checked against their checksum
+    when read (:meth:`ExposureIndex.query`, :meth:`ExposureIndex.by_ids`).
 
     Attributes
     ----------
@@ -239,8 +201,12 @@ class IndexedExposure:
         The exposure file (absolute).
     visit, detector : int
     band : str
+    checksum : str
+        SHA-256 of the row's stored fields (:func:`row_checksum`): what a patch built from
+        this input depends on, as indexed.
     entry : ManifestEntry
-        How to open the file (absolute paths).
+        How to open the file (absolute paths). ``trust_psf`` is always False here: trust
+        comes from the run's own configuration, never from a data file.
     corners : numpy.ndarray
         ``(4, 2)`` RA/Dec (deg) of its footprint's corners.
     files : tuple of FileStamp
@@ -254,6 +220,7 @@ class IndexedExposure:
     visit: int
     detector: int
     band: str
+    checksum: str
     entry_json: str = field(repr=False)
     corners_json: str = field(repr=False)
     files_json: str = field(repr=False)
@@ -261,7 +228,8 @@ class IndexedExposure:
 
     @cached_property
     def entry(self) -> ManifestEntry:
-        return ManifestEntry.model_validate_json(self.entry_json)
+        entry = ManifestEntry.model_validate_json(self.entry_json)
+        return entry.model_copy(update={"trust_psf": False}) if entry.trust_psf else entry
 
     @cached_property
     def corners(self) -> np.ndarray:
@@ -277,13 +245,48 @@ class IndexedExposure:
             raise CellCoaddFormatError(self.path, "its header was not read from the index")
         return header_from_json(self.header_json)
 
-    def source(self) -> ExposureSource:
-        """The exposure source of the file (reads the PSF model file of survey layouts)."""
-        return source_of(self.entry)
+    def source(self, trust_psf: bool = False) -> ExposureSource:
+        """The exposure source of the file (reads the PSF model file of survey layouts);
+        ``trust_psf`` (from the run's configuration) allows pickled PSF models."""
+        entry = self.entry.model_copy(update={"trust_psf": True}) if trust_psf else self.entry
+        return source_of(entry)
 
-    def described(self) -> DescribedSource:
+    def described(self, trust_psf: bool = False) -> DescribedSource:
         """The source with its stored header: what a build takes, no header parsed."""
-        return DescribedSource(self.source(), self.header())
+        return DescribedSource(self.source(trust_psf), self.header())
+
+    def cross_check(self, source: ExposureSource | None = None) -> DescribedSource:
+        """The source with its header read from the file, after checking that every
+        stored field the build uses (identity, band, zero point, shape, valid box, mask
+        bits, WCS) equals what the file says now.
+
+        Raises
+        ------
+        IndexRowError
+            Naming the file, the row and each field that differs.
+        """
+        source = source or self.source()
+        stored = json.loads(self.header_json or "{}")
+        found = json.loads(header_to_json(source.header()))
+        fields = tuple(name for name in found if stored.get(name) != found[name])
+        if fields:
+            details = "; ".join(
+                f"{name}: index {_short(stored.get(name))}, file {_short(found[name])}"
+                for name in fields
+            )
+            raise IndexRowError(
+                f"{self.path}: row {self.id} of the exposure index differs from the file "
+                f"({details}): run `cellcoadd index` again",
+                path=self.path,
+                row=self.id,
+                fields=fields,
+            )
+        return DescribedSource(source, header_from_json(self.header_json or ""))
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value, separators=(",", ":"))
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def source_of(entry: ManifestEntry) -> ExposureSource:
@@ -341,6 +344,18 @@ def describe_entry(entry: ManifestEntry, checksum: bool = False) -> Described:
 # -- the index ---------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class UnusableFile:
+    """A file the index marks bad or vanished: why, and its band and footprint corners
+    when they were known (a vanished file keeps those it was indexed with)."""
+
+    path: str
+    status: str
+    reason: str
+    band: str | None = None
+    corners: np.ndarray | None = field(default=None, repr=False)
+
+
 @dataclass
 class IndexUpdate:
     """What one :meth:`ExposureIndex.update` did (paths in each list)."""
@@ -386,33 +401,29 @@ class ExposureIndex:
             raise CellCoaddFormatError(self.path, "no such exposure index")
         # a FIFO, a device or a directory is refused before SQLite opens it
         resolved = (gate_read if readonly else gate_write)(self.path, what="exposure index")
+        self._db = open_own_database(
+            resolved,
+            application_id=APPLICATION_ID,
+            version=SCHEMA_VERSION,
+            schema=_SCHEMA,
+            what="exposure index",
+            readonly=readonly,
+            older="index the files again into a new file",
+        )
+        self._db.row_factory = sqlite3.Row
         try:
-            if readonly:
-                uri = f"{Path(resolved).as_uri()}?mode=ro"  # percent-encoded: '?', '#' kept
-                self._db = sqlite3.connect(uri, uri=True, timeout=60.0)
-            else:
-                self._db = sqlite3.connect(resolved, timeout=60.0)
-                self._db.executescript(_SCHEMA)
             self._db.execute("PRAGMA foreign_keys = ON")
             rows = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
-        except sqlite3.DatabaseError as err:
-            raise CellCoaddFormatError(self.path, f"not an exposure index ({err})") from None
-        if not rows and not readonly:
-            if nside <= 0 or nside & (nside - 1):
-                raise CellCoaddFormatError(self.path, f"nside {nside} is not a power of 2")
-            with self._db:
-                self._db.executemany(
-                    "INSERT INTO meta VALUES (?, ?)",
-                    [("schema_version", str(SCHEMA_VERSION)), ("nside", str(nside))],
-                )
-            rows = {"schema_version": str(SCHEMA_VERSION), "nside": str(nside)}
-        if rows.get("schema_version") != str(SCHEMA_VERSION):
-            raise CellCoaddFormatError(
-                self.path,
-                f"exposure index schema version {rows.get('schema_version')!r}, this "
-                f"library reads version {SCHEMA_VERSION}: index the files again",
-            )
-        self.nside = int(rows["nside"])
+            if not rows and not readonly:
+                if nside <= 0 or nside & (nside - 1):
+                    raise CellCoaddFormatError(self.path, f"nside {nside} is not a power of 2")
+                with self._db:
+                    self._db.execute("INSERT INTO meta VALUES ('nside', ?)", (str(nside),))
+                rows = {"nside": str(nside)}
+            self.nside = int(rows["nside"])
+        except (sqlite3.DatabaseError, KeyError, ValueError) as err:
+            self._db.close()
+            raise CellCoaddFormatError(self.path, f"damaged exposure index ({err})") from None
 
     def close(self) -> None:
         self._db.close()
@@ -551,8 +562,11 @@ class ExposureIndex:
                 corners=json.dumps(item.corners.tolist()),
                 area_deg2=polygon_area(item.corners),
                 header=item.header_json,
+                header_sha256=json_sha256(item.header_json),
             )
-            pixels = polygon_pixels(self.nside, item.corners)
+            pixels = healpix_pixels(self.nside, item.corners)
+        values["n_pixels"] = len(pixels)
+        values["checksum"] = row_checksum(values)
         self._db.execute("DELETE FROM exposures WHERE path = ?", (entry.path,))
         names = ", ".join(values)
         marks = ", ".join("?" for _ in values)
@@ -579,8 +593,15 @@ class ExposureIndex:
 
     def query(self, corners: np.ndarray, band: str | None = None) -> list[IndexedExposure]:
         """The usable inputs whose footprint may overlap the convex polygon ``corners``
-        (``(n, 2)`` RA/Dec, deg), of ``band`` if given, ordered by (visit, detector)."""
-        pixels = polygon_pixels(self.nside, np.asarray(corners, dtype=float))
+        (``(n, 2)`` RA/Dec, deg), of ``band`` if given, ordered by (visit, detector).
+
+        Raises
+        ------
+        IndexRowError
+            When a row returned does not match its checksum (names the file, the row and
+            the fields that differ from the file).
+        """
+        pixels = healpix_pixels(self.nside, np.asarray(corners, dtype=float))
         ids: set[int] = set()
         for start in range(0, len(pixels), _CHUNK):
             part = [int(p) for p in pixels[start : start + _CHUNK]]
@@ -593,14 +614,18 @@ class ExposureIndex:
                 )
             )
         found = [
-            _indexed(row) for row in self._rows(sorted(ids), header=False) if band in (None, row[4])
+            self._checked(row)
+            for row in self._rows(sorted(ids), header=False)
+            if band in (None, row["band"])
         ]
         return sorted(found, key=lambda item: (item.visit, item.detector, item.path))
 
-    def _rows(self, ids: Sequence[int], header: bool = True) -> list[tuple[Any, ...]]:
-        """The ``ok`` rows (:data:`_COLUMNS`, the header or NULL) among ``ids``."""
-        columns = _COLUMNS + (", header" if header else ", NULL")
-        rows = []
+    def _rows(self, ids: Sequence[int], header: bool = True) -> list[sqlite3.Row]:
+        """The ``ok`` rows among ``ids``, by column name (the header NULL unless asked)."""
+        columns = ", ".join(("id", "checksum", *CHECKED_FIELDS)) + (
+            ", header" if header else ", NULL AS header"
+        )
+        rows: list[sqlite3.Row] = []
         for start in range(0, len(ids), _CHUNK):
             part = [int(i) for i in ids[start : start + _CHUNK]]
             marks = ", ".join("?" for _ in part)
@@ -609,21 +634,125 @@ class ExposureIndex:
             ).fetchall()
         return rows
 
+    def _checked(self, row: sqlite3.Row) -> IndexedExposure:
+        """The row as an :class:`IndexedExposure`, after checking it against its checksum
+        (and its header against the header's SHA-256, when read)."""
+        values = {name: row[name] for name in CHECKED_FIELDS}
+        damaged = row_checksum(values) != row["checksum"]
+        if row["header"] is not None and json_sha256(row["header"]) != row["header_sha256"]:
+            damaged = True
+        if damaged:
+            fields = self._differing_fields(row)
+            raise IndexRowError(
+                f"{row['path']}: row {row['id']} of the exposure index {self.path} does not "
+                f"match its checksum (stored {', '.join(fields)} "
+                f"{'differ' if len(fields) > 1 else 'differs'} from the file or was damaged): "
+                "run `cellcoadd index` again",
+                path=row["path"],
+                row=int(row["id"]),
+                fields=fields,
+            )
+        try:
+            return IndexedExposure(
+                int(row["id"]), row["path"], int(row["visit"]), int(row["detector"]),
+                str(row["band"]), row["checksum"], row["entry"], row["corners"], row["files"],
+                row["header"],
+            )  # fmt: skip
+        except (TypeError, ValueError) as err:
+            raise IndexRowError(
+                f"{row['path']}: row {row['id']} of the exposure index {self.path} is "
+                f"unreadable ({err}): run `cellcoadd index` again",
+                path=row["path"],
+                row=int(row["id"]),
+            ) from None
+
+    def _differing_fields(self, row: sqlite3.Row) -> tuple[str, ...]:
+        """Which stored fields of ``row`` differ from the file described now (the
+        checksum itself when none does)."""
+        try:
+            entry = ManifestEntry.model_validate_json(row["entry"])
+        except ValueError:
+            return ("entry",)
+        fresh = describe_entry(entry.model_copy(update={"trust_psf": False}))
+        if fresh.reason is not None or fresh.header_json is None or fresh.corners is None:
+            return ("header",)
+        stored_header = row["header"]
+        if stored_header is None:
+            (stored_header,) = self._db.execute(
+                "SELECT header FROM exposures WHERE id = ?", (row["id"],)
+            ).fetchone()
+        now = json.loads(fresh.header_json)
+        expected = {
+            "visit": now["visit"],
+            "detector": now["detector"],
+            "band": now["band"],
+            "zero_point": now["zero_point"],
+            "ny": now["shape"][0],
+            "nx": now["shape"][1],
+            "valid_box": json.dumps(now["valid_box"]),
+            "corners": json.dumps(fresh.corners.tolist()),
+            "n_pixels": len(healpix_pixels(self.nside, fresh.corners)),
+            "path": entry.path,
+        }
+        fields = [name for name, value in expected.items() if row[name] != value]
+        try:
+            stored = json.loads(stored_header or "{}")
+        except ValueError:
+            stored = {}
+        fields += [f"header.{name}" for name in now if stored.get(name) != now[name]]
+        if json_sha256(stored_header) != row["header_sha256"] and not any(
+            f.startswith("header.") for f in fields
+        ):
+            fields.append("header")
+        return tuple(fields) or ("checksum",)
+
     def by_ids(self, ids: Sequence[int]) -> list[IndexedExposure]:
-        """The usable inputs of row ``ids``, in the order of ``ids``.
+        """The usable inputs of row ``ids``, in the order of ``ids``, each checked
+        against its checksum.
 
         Raises
         ------
         CellCoaddFormatError
             When a row is missing or no longer usable (re-indexed, bad or vanished).
+        IndexRowError
+            When a row does not match its checksum (names the file, row and fields).
         """
-        rows = {row[0]: row for row in self._rows(ids)}
+        rows = {row["id"]: row for row in self._rows(ids)}
         missing = [i for i in ids if i not in rows]
         if missing:
             raise CellCoaddFormatError(
                 self.path, f"rows {missing[:5]} are gone or unusable: the index changed"
             )
-        return [_indexed(rows[i]) for i in ids]
+        return [self._checked(rows[i]) for i in ids]
+
+    def check_footprints(self) -> None:
+        """Check that every usable row has the footprint pixels it was stored with (one
+        count over the spatial key; rows are named only when the totals differ).
+
+        Raises
+        ------
+        IndexRowError
+            Naming the first rows whose pixels are missing or extra.
+        """
+        (stored,) = self._db.execute("SELECT COUNT(*) FROM footprint").fetchone()
+        (expected,) = self._db.execute(
+            "SELECT COALESCE(SUM(n_pixels), 0) FROM exposures WHERE status = 'ok'"
+        ).fetchone()
+        if stored == expected:
+            return
+        wrong = self._db.execute(
+            "SELECT e.id, e.path, e.n_pixels, COUNT(f.pixel) FROM exposures e LEFT JOIN "
+            "footprint f ON f.exposure = e.id WHERE e.status = 'ok' GROUP BY e.id "
+            "HAVING COUNT(f.pixel) != e.n_pixels ORDER BY e.id LIMIT 5"
+        ).fetchall()
+        named = "; ".join(f"{path} (row {i}: {n} of {want} pixels)" for i, path, want, n in wrong)
+        raise IndexRowError(
+            f"{self.path}: the spatial key has {stored} footprint pixels where the rows "
+            f"list {expected}{': ' + named if named else ''}: run `cellcoadd index` again",
+            path=wrong[0][1] if wrong else self.path,
+            row=int(wrong[0][0]) if wrong else None,
+            fields=("footprint",),
+        )
 
     def bad_files(self) -> list[tuple[str, str]]:
         """``(path, reason)`` of every file that is bad or vanished."""
@@ -633,6 +762,41 @@ class ExposureIndex:
                 "SELECT path, status, reason FROM exposures WHERE status != 'ok' ORDER BY path"
             )
         ]
+
+    def bands(self) -> list[str]:
+        """The bands of the usable inputs, sorted."""
+        return [row[0] for row in self._db.execute(
+            "SELECT DISTINCT band FROM exposures WHERE status = 'ok' ORDER BY band"
+        )]  # fmt: skip
+
+    def footprint_pixels(self, bands: Sequence[str] | None = None) -> np.ndarray:
+        """The distinct HEALPix pixels (nested, :attr:`nside`) of the usable inputs' footprints
+        (of ``bands`` only, when given): where the index has data."""
+        sql = "SELECT DISTINCT f.pixel FROM footprint f"
+        params: list[Any] = []
+        if bands is not None:
+            marks = ", ".join("?" for _ in bands)
+            sql += f" JOIN exposures e ON e.id = f.exposure WHERE e.band IN ({marks})"
+            params = list(bands)
+        return np.fromiter((row[0] for row in self._db.execute(sql, params)), dtype=np.int64)
+
+    def unusable(self) -> list[UnusableFile]:
+        """Every file the index marks bad or vanished, with where it was (when known)."""
+        out = []
+        for row in self._db.execute(
+            "SELECT id, path, status, reason, band, corners FROM exposures "
+            "WHERE status != 'ok' ORDER BY path"
+        ):
+            try:
+                corners = None if row["corners"] is None else np.asarray(json.loads(row["corners"]))
+            except ValueError:
+                corners = None
+            out.append(
+                UnusableFile(
+                    row["path"], row["status"], row["reason"] or row["status"], row["band"], corners
+                )
+            )
+        return out
 
     def stats(self) -> dict[str, Any]:
         """Files by status, bands (files and visits), visits, summed footprint area (deg^2)
@@ -665,16 +829,8 @@ class ExposureIndex:
         }
 
 
-_COLUMNS = "id, path, visit, detector, band, entry, corners, files"
 #: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
 _CHUNK = 900
-
-
-def _indexed(row: tuple[Any, ...]) -> IndexedExposure:
-    row_id, path, visit, detector, band, entry, corners, files, header = row
-    return IndexedExposure(
-        int(row_id), path, int(visit), int(detector), str(band), entry, corners, files, header
-    )
 
 
 def _stale(files: list[list[Any]], entry: ManifestEntry, checksum: bool) -> bool:

@@ -1,10 +1,24 @@
-"""Choosing where independent tasks run: here, a local process pool, or a dask cluster."""
+"""Settings of the processes that build cells: glibc's allocator and dask's housekeeping.
+
+One home for the numbers: the ``cellcoadd`` command applies :data:`MMAP_THRESHOLD` and
+:data:`TRIM_THRESHOLD` to its own process (:mod:`cellcoadd.cli.allocator`), and dask
+workers get them, with :data:`ARENA_MAX` and quieter housekeeping, through
+:data:`DASK_WORKER_CONFIG` (or :func:`dask_worker_environment` for workers started
+elsewhere). Results never depend on them; CPU does.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
+
+#: glibc ``M_MMAP_THRESHOLD`` (bytes): arrays up to 32 MB stay on the heap instead of being
+#: mapped and unmapped each time (a third of a patch build's system CPU otherwise)
+MMAP_THRESHOLD = 32 * 2**20
+#: glibc ``M_TRIM_THRESHOLD`` (bytes): up to 256 MB of freed heap memory is kept for the
+#: next arrays instead of being returned to the system and faulted in again
+TRIM_THRESHOLD = 256 * 2**20
+#: glibc's arena count for dask workers (which run their tasks in a thread)
+ARENA_MAX = 1
 
 #: dask settings for the processes that build cells (set them before a cluster starts:
 #: ``dask.config.set(DASK_WORKER_CONFIG)``, or under the same keys in the dask YAML of the
@@ -25,9 +39,9 @@ from typing import Any
 #:   20 ms tick, the 100 ms memory monitor and the GIL monitor cost 10-14% of a busy
 #:   worker's CPU (measured on 2 single-threaded workers); with these values, ~3%.
 DASK_WORKER_CONFIG: dict[str, Any] = {
-    "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 33554432,
-    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 268435456,
-    "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1,
+    "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": MMAP_THRESHOLD,
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": TRIM_THRESHOLD,
+    "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": ARENA_MAX,
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "1s",
     "distributed.admin.system-monitor.interval": "2s",
@@ -56,64 +70,3 @@ def dask_worker_environment() -> dict[str, str]:
             parts = (part.upper().replace("-", "_") for part in key.split("."))
             environment["DASK_" + "__".join(parts)] = str(value)
     return environment
-
-
-def dask_client(scheduler: object) -> tuple[Any, Callable[[], None] | None]:
-    """The ``distributed.Client`` for ``scheduler`` and how to release it.
-
-    Parameters
-    ----------
-    scheduler : str or distributed.Client
-        A dask.distributed scheduler address (a client is opened, and closed by the
-        release function) or an existing client (returned as it is, left open).
-
-    Returns
-    -------
-    client, release
-        ``release`` is None for a client given here; otherwise call it when done.
-    """
-    from distributed import Client  # optional: the dask extra
-
-    if isinstance(scheduler, Client):
-        return scheduler, None
-    client = Client(scheduler)  # ours: closed at the end, so nothing lingers
-    return client, client.close
-
-
-def resolve_executor(
-    executor: Executor | None,
-    workers: int,
-    scheduler: object | None,
-    *,
-    initializer: Callable[..., None] | None = None,
-    initargs: tuple[Any, ...] = (),
-) -> tuple[Executor | None, Callable[[], None] | None]:
-    """The executor to use and how to release it.
-
-    Parameters
-    ----------
-    executor : Executor, optional
-        Used as given (never shut down here).
-    workers : int
-        Size of a local process pool when neither ``executor`` nor ``scheduler`` is given;
-        1 means run serially in this process (``None`` is returned).
-    scheduler : str or distributed.Client, optional
-        A dask.distributed scheduler address or client (see :func:`dask_client`); its
-        ``concurrent.futures`` executor is returned.
-    initializer, initargs
-        Run in each process of a pool created here (not on other executors).
-
-    Returns
-    -------
-    executor, release
-        ``release`` is None when nothing here was created; otherwise call it when done.
-    """
-    if executor is not None:
-        return executor, None
-    if scheduler is not None:
-        client, release = dask_client(scheduler)
-        return client.get_executor(), release
-    if workers > 1:
-        pool = ProcessPoolExecutor(max_workers=workers, initializer=initializer, initargs=initargs)
-        return pool, lambda: pool.shutdown(wait=True, cancel_futures=True)
-    return None, None

@@ -1,6 +1,7 @@
-"""Tract runs: planned from an exposure index, built patch by patch (here or on a dask
+"""Survey runs: planned from an exposure index, built patch by patch (here or on a dask
 LocalCluster), byte-identical to `cellcoadd build`, resumable after kill -9, retried,
-failing patches named, stale patches rebuilt, one run per output directory."""
+failing patches named, stale patches rebuilt, one run per output directory. The
+one-tract, one-band field of `run_factory` (band r)."""
 
 from __future__ import annotations
 
@@ -25,8 +26,8 @@ from cellcoadd.cli.main import cli
 from cellcoadd.errors import RunLockedError
 from cellcoadd.io.exposures.index import ExposureIndex, FileStamp, absolute_entry
 from cellcoadd.model.manifest import ManifestEntry
-from cellcoadd.pipelines.ledger import Ledger, RunLock
-from cellcoadd.pipelines.tract_run import plan_tract, run_tract
+from cellcoadd.pipelines.survey import PatchKey, plan_tract, run_tract
+from cellcoadd.pipelines.survey.ledger import Ledger, RunLock
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -72,33 +73,48 @@ def _run_args(root: Path, out: Path, *extra: str) -> list[str]:
 
 def _same_outputs(a: Path, b: Path) -> list[str]:
     """Names of the patch files of ``a`` that differ from those of ``b``."""
-    names = sorted(p.name for p in (a / "tract_0").iterdir())
-    assert set(names) <= {p.name for p in (b / "tract_0").iterdir()}
-    return [n for n in names if not filecmp.cmp(a / "tract_0" / n, b / "tract_0" / n, False)]
+    a, b = a / "r" / "tract_0", b / "r" / "tract_0"
+    names = sorted(p.name for p in a.glob("patch_*"))
+    assert set(names) <= {p.name for p in b.glob("patch_*")}
+    return [n for n in names if not filecmp.cmp(a / n, b / n, False)]
+
+
+def _patches(keys) -> set[tuple[int, int]]:
+    """The ``(px, py)`` of patch keys (band r, tract 0)."""
+    keys = list(keys)
+    assert all(k.band == "r" and k.tract == 0 for k in keys), keys
+    return {k.patch for k in keys}
+
+
+def _key(px: int, py: int) -> PatchKey:
+    return PatchKey("r", 0, px, py)
 
 
 def test_run_is_byte_identical_to_build_and_reports(field, tmp_path):
     ref = field / "reference"
     with Ledger(ref) as ledger:
-        rows = ledger.rows(0)
-    assert {row.state for row in rows.values()} == {"done"} and len(rows) == 9
-    row = rows[(0, (1, 0))]
+        rows = ledger.records(tract=0)
+    assert {row.state.value for row in rows.values()} == {"done"} and len(rows) == 9
+    row = rows[_key(1, 0)]
     # `cellcoadd build` of that patch, same inputs in the ledger's order, config and seed
-    paths = [path for path, _, _ in row.inputs]
+    paths = [stamp.path for stamp in row.inputs]
     out = tmp_path / "built.fits"
     args = ["build", *paths, "--skymap", str(field / "skymap.json"), "--tract", "0"]
     args += ["--patch", "1,0", "--out", str(out), "--config", str(field / "build.json"), "-q"]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
-    assert out.read_bytes() == Path(row.output).read_bytes()
+    assert row.output == "r/tract_0/patch_1_0.fits"  # relative to the output directory
+    assert out.read_bytes() == (ref / row.output).read_bytes()
     report = json.loads((ref / "report.json").read_text())
     assert report["totals"]["done"] == 9 and report["totals"]["failed"] == 0
     assert report["totals"]["cells"] == 9 * 16
-    entry = next(p for p in report["patches"] if p["patch"] == [1, 0])
+    assert report["bands"]["r"]["done"] == 9 and report["tracts"]["r/0"]["done"] == 9
+    tract_report = json.loads((ref / report["tracts"]["r/0"]["report"]).read_text())
+    entry = next(p for p in tract_report["patches"] if p["patch"] == [1, 0])
     assert entry["inputs"] == len(paths) and 0 < entry["inputs_used"] <= len(paths)
     assert entry["cpu_s"] > 0 and entry["wall_s"] > 0 and entry["checksum"] == row.checksum
     assert set(entry["rejected_records"]) <= {"edge", "no_overlap", "masked", "bad_psf"}
-    assert (ref / "coverage.png").read_bytes()[:4] == b"\x89PNG"
+    assert (ref / "r" / "tract_0" / "coverage.png").read_bytes()[:4] == b"\x89PNG"
     # the same run again: nothing to do
     again = run_tract(field / "inputs.sqlite", skymap(), 0, ref, config=BUILD, progress=False)
     assert not again.built and len(again.up_to_date) == 9
@@ -106,8 +122,8 @@ def test_run_is_byte_identical_to_build_and_reports(field, tmp_path):
 
 def test_plan_assigns_inputs_to_the_patches_they_may_touch(field):
     with ExposureIndex(field / "inputs.sqlite", readonly=True) as index:
-        plan = plan_tract(index, skymap(), 0)
-        only = plan_tract(index, skymap(), 0, patches=[(1, 1)])
+        (plan,) = plan_tract(index, skymap(), 0)
+        (only,) = plan_tract(index, skymap(), 0, patches=[(1, 1)])
     assert [p.index for p in plan.patches] == [(x, y) for y in range(3) for x in range(3)]
     assert plan.band == "r" and all(p.inputs for p in plan.patches)
     assert [p.index for p in only.patches] == [(1, 1)]
@@ -115,7 +131,7 @@ def test_plan_assigns_inputs_to_the_patches_they_may_touch(field):
     # the centre patch: every input; a corner patch: not those of the far side
     assert len(plan.patches[4].inputs) == 3 * 9
     with ExposureIndex(field / "inputs.sqlite", readonly=True) as index:
-        corner = {(r.visit, r.detector) for r in index.by_ids(plan.patches[0].inputs)}
+        corner = {(r.visit, r.detector) for r in index.by_ids(plan.patches[0].rows)}
     assert corner == {(v, d) for v in range(3) for d in (0, 1, 3, 4)}
 
 
@@ -124,14 +140,14 @@ def test_cell_costs_count_the_inputs_each_cell_accepts(field):
     the inputs whose footprint covers its outer box: those the build may use. Here every
     cell uses all of them (bar inputs masked on the cell), and never one more."""
     with ExposureIndex(field / "inputs.sqlite", readonly=True) as index:
-        plan = plan_tract(index, skymap(), 0)
+        (plan,) = plan_tract(index, skymap(), 0)
     with Ledger(field / "reference") as ledger:
-        rows = ledger.rows(0)
+        rows = ledger.records(tract=0)
     equal = total = 0
     for item in plan.patches:
         costs = item.cell_costs()
         assert set(costs) == {cell.index for cell in item.patch.cells}
-        for cx, cy, used in rows[(0, item.index)].summary["depth"]:
+        for cx, cy, used in rows[_key(*item.index)].summary.depth:
             assert used <= costs[(cx, cy)] - 1 <= len(item.inputs)
             equal += used == costs[(cx, cy)] - 1
             total += 1
@@ -146,7 +162,7 @@ def test_cell_costs_of_a_footprint_covering_part_of_a_patch():
     holds whole, not for those it only overlaps."""
     import numpy as np
 
-    from cellcoadd.pipelines.tract_run import PatchPlan
+    from cellcoadd.pipelines.survey import PatchPlan
 
     patch = skymap()[0].patch(1, 1)
     cells = {cell.index: cell.outer_bbox for cell in patch.cells}
@@ -159,15 +175,15 @@ def test_cell_costs_of_a_footprint_covering_part_of_a_patch():
     quad = np.array([[left - 5, bottom - 5], [middle, bottom - 4], [middle, top + 4],
                      [left - 5, top + 5]])  # fmt: skip
     for footprint in (quad, quad[::-1]):
-        plan = PatchPlan(patch, (1,), (), footprints=(footprint,))
+        plan = PatchPlan(_key(1, 1), patch, (), footprints=(footprint,))
         costs = plan.cell_costs()
         for index, box in cells.items():
             held = box.x_stop - 0.5 <= middle
             assert costs[index] == (2.0 if held else 1.0), (index, box)
-    assert set(PatchPlan(patch, (), ()).cell_costs().values()) == {1.0}
+    assert set(PatchPlan(_key(1, 1), patch, ()).cell_costs().values()) == {1.0}
 
 
-def test_plan_needs_a_band_when_the_tract_has_several(tmp_path):
+def test_plan_gives_one_plan_per_band_of_the_tract(tmp_path):
     from exposure_factory import make_wcs
 
     from cellcoadd.errors import ConfigError
@@ -184,15 +200,19 @@ def test_plan_needs_a_band_when_the_tract_has_several(tmp_path):
             index.put(ManifestEntry(path=f"/data/v{visit}.fits"), header,
                       [FileStamp(f"/data/v{visit}.fits", 1, 1)])  # fmt: skip
         index.commit()
-        with pytest.raises(ConfigError, match=r"bands \['g', 'i', 'r'\].*give one band"):
-            plan_tract(index, skymap(), 0)
-        plan = plan_tract(index, skymap(), 0, band="i")
+        plans = plan_tract(index, skymap(), 0)
+        (plan,) = plan_tract(index, skymap(), 0, bands=["i"])
+    assert [p.band for p in plans] == ["g", "i", "r"]
     assert plan.band == "i" and plan.patches
     assert all(len(p.inputs) == 1 for p in plan.patches)  # only visit 1 (band i)
-    # a patch asked for that no input touches: planned without inputs
+    assert all(p.key.band == "i" for p in plan.patches)
+    # a patch asked for that no input of the band touches: planned without inputs
     with ExposureIndex(tmp_path / "inputs.sqlite", readonly=True) as index:
-        far = plan_tract(index, skymap(), 0, patches=[(0, 0)], band="z")
+        (far,) = plan_tract(index, skymap(), 0, patches=[(0, 0)], bands=["z"])
     assert [(p.index, p.inputs) for p in far.patches] == [((0, 0), ())]
+    # a band the index does not have is refused by a run, naming the bands it has
+    with pytest.raises(ConfigError, match=r"band\(s\) \['z'\].*\['g', 'i', 'r'\]"):
+        run_tract(tmp_path / "inputs.sqlite", skymap(), 0, tmp_path / "out", band="z")
 
 
 def test_seed_and_input_changes_rebuild_exactly_the_affected_patches(field, tmp_path):
@@ -208,15 +228,15 @@ def test_seed_and_input_changes_rebuild_exactly_the_affected_patches(field, tmp_
     assert not _same_outputs(out, field / "reference")
     # an input file changes (new mtime) and is indexed again: its patches only
     with Ledger(out) as ledger:
-        rows = ledger.rows(0)
+        rows = ledger.records(tract=0)
     touched = root / "inputs" / "visit2-det0.fits"
-    users = {k[1] for k, r in rows.items() if str(touched) in {f[0] for f in r.inputs}}
+    users = {k.patch for k, r in rows.items() if str(touched) in {f.path for f in r.inputs}}
     assert users == {(0, 0), (1, 1)}
     stamp = FileStamp.of(str(touched))
     os.utime(touched, ns=(stamp.mtime_ns + 10**9,) * 2)
     _index(root / "inputs.sqlite", sorted((root / "inputs").glob("*.fits")))
     second = run()
-    assert set(second.built) == users and second.up_to_date == [(2, 2)]
+    assert _patches(second.built) == users and _patches(second.up_to_date) == {(2, 2)}
     # another seed: every patch, and different bytes
     assert len(run(seed=7).built) == 3
     assert len(_same_outputs(out, field / "reference")) == 3
@@ -235,7 +255,7 @@ def test_changed_input_not_indexed_again_fails_its_patches(field, tmp_path):
         root / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=BUILD, retries=0,
         patches=[(1, 1), (2, 0)], progress=False, figure=False,
     )  # fmt: skip
-    assert set(result.failed) == {(1, 1)} and result.built == [(2, 0)]
+    assert _patches(result.failed) == {(1, 1)} and _patches(result.built) == {(2, 0)}
     assert all("visit1-det3.fits" in why for why in result.failed.values())
     assert all("index" in why for why in result.failed.values())
 
@@ -259,16 +279,21 @@ def test_damaged_input_fails_its_patches_names_the_file_and_exits_non_zero(field
     failed = {tuple(f["patch"]) for f in report["failures"]}
     with Ledger(out) as ledger:
         users = {
-            k[1] for k, r in ledger.rows(0).items() if str(damaged) in {f[0] for f in r.inputs}
+            k.patch
+            for k, r in ledger.records(tract=0).items()
+            if str(damaged) in {f.path for f in r.inputs}
         }
     assert failed == users == {(0, 0)}  # visit0-det0 cannot touch patch 2,2
     assert report["totals"]["done"] == 1
     for item in report["failures"]:
         assert "visit0-det0.fits" in item["error"]
-        assert f"patch {item['patch'][0]},{item['patch'][1]}:" in str(result.exception)
-    assert all(p["attempts"] == 2 for p in report["patches"] if p["state"] == "failed")
+        assert f"r tract 0 patch {item['patch'][0]},{item['patch'][1]}:" in str(result.exception)
+    patches = json.loads((out / "r" / "tract_0" / "report.json").read_text())["patches"]
+    failed_entries = [p for p in patches if p["state"] == "failed"]
+    assert failed_entries and all(p["attempts"] == 2 for p in failed_entries)
+    assert all("visit0-det0.fits" in p["retried"][0] for p in failed_entries)
     for px, py in failed:
-        assert not (out / "tract_0" / f"patch_{px}_{py}.fits").exists()
+        assert not (out / "r" / "tract_0" / f"patch_{px}_{py}.fits").exists()
     # the file repaired: only the failed patches are built, identical to the reference
     damaged.write_bytes(pristine)
     os.utime(damaged, ns=(stamp.mtime_ns, stamp.mtime_ns))
@@ -276,7 +301,8 @@ def test_damaged_input_fails_its_patches_names_the_file_and_exits_non_zero(field
         root / "inputs.sqlite", skymap(), 0, out, config=BUILD, patches=[(0, 0), (2, 2)],
         progress=False,
     )  # fmt: skip
-    assert set(again.built) == failed and again.up_to_date == [(2, 2)] and not again.failed
+    assert _patches(again.built) == failed and _patches(again.up_to_date) == {(2, 2)}
+    assert not again.failed
     assert not _same_outputs(out, field / "reference")
 
 
@@ -336,16 +362,16 @@ def test_kill_9_of_the_run_then_the_same_command_gives_identical_bytes(field, tm
     assert second.returncode == 0, output
     assert f"{9 - done_before} built, {done_before} up to date, 0 failed" in output
     assert not _same_outputs(out, field / "reference")
-    assert not [p.name for p in (out / "tract_0").iterdir() if ".tmp-" in p.name]
+    assert not [p.name for p in (out / "r" / "tract_0").iterdir() if ".tmp-" in p.name]
     with Ledger(out) as ledger:
-        assert {row.state for row in ledger.rows(0).values()} == {"done"}
+        assert {row.state.value for row in ledger.records(tract=0).values()} == {"done"}
 
 
 def test_a_worker_killed_mid_patch_is_retried_on_a_local_cluster(field, tmp_path):
     pytest.importorskip("distributed")
-    from cellcoadd.pipelines.tract_run import dask_cluster
+    from cellcoadd.execution import local_cluster
 
-    client, close = dask_cluster(2)
+    client, close = local_cluster(2)
     try:
         pids = client.run(os.getpid)
         killed: list[str] = []
@@ -353,7 +379,11 @@ def test_a_worker_killed_mid_patch_is_retried_on_a_local_cluster(field, tmp_path
         def kill_a_busy_worker() -> None:
             deadline = time.monotonic() + 120
             while time.monotonic() < deadline:
-                busy = [w for w, keys in client.processing().items() if keys]
+                busy = [  # a worker building a patch (not planning)
+                    w
+                    for w, keys in client.processing().items()
+                    if any(str(k).startswith("cellcoadd-patch") for k in keys)
+                ]
                 if busy:
                     time.sleep(0.2)  # mid-patch
                     os.kill(pids[busy[0]], signal.SIGKILL)
@@ -373,18 +403,20 @@ def test_a_worker_killed_mid_patch_is_retried_on_a_local_cluster(field, tmp_path
         close()
     assert killed and result.retries >= 1 and not result.failed and len(result.built) == 4
     with Ledger(tmp_path / "out") as ledger:
-        assert max(row.attempts for row in ledger.rows(0).values()) >= 2
+        records = ledger.records(tract=0).values()
+    assert max(row.attempts for row in records) >= 2
+    # the lost worker is named in the record of the patch it was building
+    assert any("KilledWorker" in why or "died" in why for r in records for why in r.retried)
     assert not _same_outputs(tmp_path / "out", field / "reference")
 
 
 def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
     """Survey files (DES layout: the real DECam TPV header, PSFEx model, weight map, DESDM
     mask bits) listed in a manifest: indexed, run, and built by `cellcoadd build`."""
+    from conftest import DES_PSF
     from test_survey_readers import (
         DES_NX,
         DES_NY,
-        DES_PSF,
-        _need_des_files,
         des_planes,
         des_tpv_wcs,
         write_des,
@@ -393,7 +425,6 @@ def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
     from cellcoadd import BuildConfig, SkyMap, SkyMapConfig
     from cellcoadd.io import DES_BAD_MASK_BITS
 
-    _need_des_files()
     paths = [
         write_des(tmp_path / f"D{v:08d}_c12.fits", des_planes(seed=v), shift=shift)
         for v, shift in enumerate([(0.0, 0.0), (40.3, -25.7)])
@@ -426,16 +457,18 @@ def test_des_files_from_a_manifest_run_byte_identical_to_build(tmp_path):
     args += ["--config", str(tmp_path / "build.json"), "-q"]
     result = runner.invoke(cli, args)
     assert result.exit_code == 0, result.output
-    assert (out / "tract_0" / "patch_1_0.fits").read_bytes() == built.read_bytes()
-    report = json.loads((out / "report.json").read_text())
+    (band,) = [p.name for p in out.iterdir() if p.is_dir()]  # the DES file's own band
+    assert (out / band / "tract_0" / "patch_1_0.fits").read_bytes() == built.read_bytes()
+    report = json.loads((out / band / "tract_0" / "report.json").read_text())
     assert report["patches"][0]["inputs_used"] == 2
     # the cost estimate from the TPV footprints in the index bounds what each cell used
     with ExposureIndex(db, readonly=True) as index:
-        (item,) = plan_tract(index, SkyMap.from_json((tmp_path / "skymap.json").read_text()), 0,
-                             patches=[(1, 0)]).patches  # fmt: skip
+        ((item,),) = (p.patches for p in plan_tract(
+            index, SkyMap.from_json((tmp_path / "skymap.json").read_text()), 0, patches=[(1, 0)]
+        ))  # fmt: skip
     costs = item.cell_costs()
     with Ledger(out) as ledger:
-        depth = ledger.rows(0)[(0, (1, 0))].summary["depth"]
+        depth = ledger.records(tract=0)[PatchKey(band, 0, 1, 0)].summary.depth
     assert all(used <= costs[(cx, cy)] - 1 <= 2 for cx, cy, used in depth)
     assert sum(used == costs[(cx, cy)] - 1 for cx, cy, used in depth) >= 0.5 * len(depth)
 
@@ -453,7 +486,7 @@ def test_workers_without_dask_distributed_is_a_clear_error(field, tmp_path, monk
 
 
 def test_parts_per_patch_keeps_every_worker_busy_to_the_end():
-    from cellcoadd.pipelines.tract_run import parts_per_patch
+    from cellcoadd.execution import parts_per_task as parts_per_patch
 
     assert parts_per_patch(9, 2) == [1] * 8 + [2]  # 4.5 patches per worker, not 5 and 4
     assert parts_per_patch(100, 2) == [1] * 100 and parts_per_patch(8, 2) == [1] * 8
@@ -470,7 +503,7 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
     """Three patches on two workers: two whole, the third cut in two bands of cells, built
     as separate tasks and written by a worker; the files equal those of the serial run."""
     pytest.importorskip("distributed")
-    from cellcoadd.pipelines.tract_run import dask_cluster
+    from cellcoadd.execution import local_cluster
 
     # a nanny lets this process's environment win over the configuration (as a user's
     # MALLOC_* settings should); an in-process dask worker of another test may have left
@@ -478,7 +511,7 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
     monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
-    client, close = dask_cluster(2)
+    client, close = local_cluster(2)
     try:
         # the workers run with cellcoadd's settings (heap arrays, no 10 ms profiler)
         settings = client.run(_worker_settings)
@@ -490,9 +523,9 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
         close()
     assert len(settings) == 2
     assert set(settings.values()) == {("33554432", "268435456", "1", False, "1s")}
-    assert not result.failed and sorted(result.built) == [(0, 0), (1, 1), (2, 2)]
+    assert not result.failed and _patches(result.built) == {(0, 0), (1, 1), (2, 2)}
     assert not _same_outputs(tmp_path / "out", field / "reference")
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    report = json.loads((tmp_path / "out" / "r" / "tract_0" / "report.json").read_text())
     assert sorted(p["parts"] for p in report["patches"]) == [1, 1, 2]
     assert sorted(len(p["parts_cpu_s"]) for p in report["patches"]) == [1, 1, 2]
 
@@ -514,7 +547,7 @@ def test_worker_environment_gives_dask_the_same_settings():
     environment variables as the local cluster from DASK_WORKER_CONFIG."""
     import dask
 
-    from cellcoadd.builder.executors import DASK_WORKER_CONFIG, dask_worker_environment
+    from cellcoadd.execution import DASK_WORKER_CONFIG, dask_worker_environment
 
     env = dask_worker_environment()
     assert env.pop("MALLOC_MMAP_THRESHOLD_") == "33554432"
