@@ -10,7 +10,7 @@ LSST_PYTEST_ARGS ?=
 # and a test's CPU time grows several-fold (measured: 21 -> 5 CPU s for two BFD tests)
 TEST_ENV ?= OPENBLAS_NUM_THREADS=1
 
-.PHONY: demo test test-all test-lsst bench lint schemas clean
+.PHONY: demo test test-all test-lsst test-slurm bench lint schemas clean
 
 $(VENV)/.installed-base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -39,10 +39,20 @@ test: $(VENV)/.installed-test
 	$(TEST_ENV) $(PY) -m pytest
 	@$(MAKE) --no-print-directory test-lsst
 
-# every test, the slow ones too (before a release); the last -m given wins over the addopts
+# every test, the slow ones too (before a release); the last -m given wins over the addopts.
+# The SLURM tests run last, in test-slurm (it starts a SLURM on this machine first)
 test-all: $(VENV)/.installed-test
-	$(TEST_ENV) $(PY) -m pytest -m 'slow or not slow'
+	$(TEST_ENV) $(PY) -m pytest -m 'not slurm'
 	@$(MAKE) --no-print-directory test-lsst LSST_PYTEST_ARGS="-m 'slow or not slow'"
+	@$(MAKE) --no-print-directory test-slurm
+
+# tests/system: a survey run through dask-jobqueue's SLURMCluster on a single-host SLURM
+# (munged, slurmctld, slurmd on 127.0.0.1) that start_slurm.sh installs (Debian's slurm-wlm
+# and munge), configures and starts when it is not running; needs root.
+# tests/system/slurm/stop_slurm.sh stops the daemons
+test-slurm: $(VENV)/.installed-test
+	bash tests/system/slurm/start_slurm.sh
+	$(TEST_ENV) $(PY) -m pytest -m slurm tests/system
 
 # tests/test_lsst_images.py in $(LSST_VENV), made with the newest pyenv 3.12 (else a plain
 # python3.12 on PATH); without any Python 3.12 it is skipped, unless CI is set (then fails)
