@@ -402,6 +402,7 @@ def test_a_worker_killed_mid_patch_is_retried_on_a_local_cluster(field, tmp_path
     finally:
         close()
     assert killed and result.retries >= 1 and not result.failed and len(result.built) == 4
+    assert killed[0] in result.workers_left  # the run names the worker it lost
     with Ledger(tmp_path / "out") as ledger:
         records = ledger.records(tract=0).values()
     assert max(row.attempts for row in records) >= 2

@@ -143,7 +143,7 @@ def run_on_dask(
     name: str = "cellcoadd-task",
     progress: Any | None = None,
     cut: bool = True,
-) -> None:
+) -> list[str]:
     """Run ``items`` (in this order, the costliest first) as dask tasks with retries;
     ``done`` gets each :class:`Outcome` as it arrives.
 
@@ -152,12 +152,17 @@ def run_on_dask(
     cut into the parts :func:`parts_per_task` gives for the workers of that moment
     (``submit``'s ``parts``). A retry is submitted whole. ``cut=False``: every task
     whole, all submitted at once.
+
+    Returns the addresses of the workers that left the cluster during the run (killed,
+    cancelled or retired: a scheduler that moves a task of a departing worker elsewhere
+    by itself says nothing else about it).
     """
     distributed = import_distributed()
     workers = sum(client.nthreads().values())
     if workers == 0:
         client.wait_for_workers(1)  # an adaptive cluster that has not started one yet
         workers = sum(client.nthreads().values())
+    seen: dict[str, None] = dict.fromkeys(client.nthreads())
     held = list(items)
     first = held[: max(len(held) - 2 * max(workers, 1), 0)] if cut else held
     held = held[len(first) :]
@@ -172,7 +177,9 @@ def run_on_dask(
     queue = distributed.as_completed([send(Outcome(item), 1) for item in first])
 
     def release_held() -> None:
-        now = max(sum(client.nthreads().values()), 1)
+        threads = client.nthreads()
+        seen.update(dict.fromkeys(threads))
+        now = max(sum(threads.values()), 1)
         if not held or len(running) >= now:
             return
         plan = parts_per_task(len(running) + len(held), now)[len(running) :]
@@ -208,3 +215,5 @@ def run_on_dask(
         if progress is not None:
             progress.update(1)
         release_held()
+    current = client.nthreads()
+    return [worker for worker in seen if worker not in current]

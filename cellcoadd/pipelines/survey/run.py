@@ -84,6 +84,7 @@ class RunResult:
     bad_inputs: list[UnusableFile] = field(default_factory=list)
     retries: int = 0
     lost_workers: int = 0
+    workers_left: list[str] = field(default_factory=list)
     wall_s: float = 0.0
     report: Path | None = None
     figures: list[Path] = field(default_factory=list)
@@ -104,6 +105,7 @@ class RunResult:
             "no_inputs": [list(k) for k in self.no_inputs],
             "retries": self.retries,
             "lost_workers": self.lost_workers,
+            "workers_left": self.workers_left,
             "wall_s": round(self.wall_s, 3),
         }
 
@@ -115,6 +117,8 @@ class RunResult:
         )
         if self.lost_workers:
             text += f", {self.lost_workers} tasks moved after a worker died"
+        if self.workers_left:
+            text += f", {len(self.workers_left)} workers left during the run"
         if self.plan_failed:
             text += f", {len(self.plan_failed)} tracts not planned"
         return text + f" ({self.wall_s:.1f} s)"
@@ -273,7 +277,9 @@ def run_survey(
                     if client is None:
                         run_here(tasks, build_patch_task, done, retries=retries, progress=bar)
                     else:
-                        _run_patches_on_dask(client, tasks, plans, done, retries, bar)
+                        result.workers_left = _run_patches_on_dask(
+                            client, tasks, plans, done, retries, bar
+                        )
             ledger.finish_run(run_id, len(result.built), len(result.failed))
             result.wall_s = time.perf_counter() - start
             result.report, result.figures = write_reports(
@@ -544,8 +550,8 @@ def _run_patches_on_dask(
     done: Callable[[Outcome[PatchTask]], None],
     retries: int,
     bar: Any,
-) -> None:
-    """The patches as dask tasks: a patch cut into parts builds each run of cells of
+) -> list[str]:
+    """The patches as dask tasks (the workers that left during them returned): a patch cut into parts builds each run of cells of
     equal estimated cost (:meth:`PatchPlan.cell_costs`, ``parts_by_cost``) as a task,
     and the task writing the file gathers them from the workers that hold them."""
     from cellcoadd.builder.patch import parts_by_cost
@@ -566,4 +572,6 @@ def _run_patches_on_dask(
         # the parts stay on the workers: the one writing the patch gathers them
         return [*futures, client.submit(write_patch_task, task, *futures, key=key, pure=False)]
 
-    run_on_dask(client, tasks, submit, done, retries=retries, name="cellcoadd-patch", progress=bar)
+    return run_on_dask(
+        client, tasks, submit, done, retries=retries, name="cellcoadd-patch", progress=bar
+    )
