@@ -17,15 +17,15 @@ def _parse_region(
     from cellcoadd.errors import ConfigError
     from cellcoadd.geometry.footprint import check_region
 
+    expected = click.BadParameter(f"expected RA0,RA1,DEC0,DEC1 in degrees, got {text!r}")
     try:
         values = tuple(float(part) for part in text.split(","))
-        if len(values) != 4:
-            raise ValueError
-        return check_region(values)
     except ValueError:
-        raise click.BadParameter(
-            f"expected RA0,RA1,DEC0,DEC1 in degrees, got {text!r}", param=param
-        ) from None
+        raise expected from None
+    if len(values) != 4:
+        raise expected
+    try:
+        return check_region((values[0], values[1], values[2], values[3]))
     except ConfigError as err:
         raise click.BadParameter(str(err), param=param) from None
 
@@ -117,7 +117,7 @@ def run_command(
       cellcoadd index sim/visit*-det*.fits --db inputs.sqlite
       cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --out-dir run --workers 2
       cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --out-dir run \\
-          --band r --tract 0 --patch 0,0
+          --band i --tract 0 --patch 0,0
       cellcoadd run --index inputs.sqlite --skymap sim/skymap.json --out-dir run-h5 \\
           --format h5 --scheduler tcp://127.0.0.1:8786
     """

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcoadd._version import __version__
-from cellcoadd.errors import ConfigError
+from cellcoadd.errors import CellCoaddRuntimeError, ConfigError
 from cellcoadd.execution import (
     Outcome,
     error_text,
@@ -350,7 +350,9 @@ def _plan(
         if outcome.ok:
             plans.extend(outcome.result)
         else:
-            result.plan_failed[outcome.item] = error_text(outcome.error or RuntimeError())
+            result.plan_failed[outcome.item] = error_text(
+                outcome.error or CellCoaddRuntimeError("no plan returned")
+            )
         result.retries += outcome.attempts - 1
         result.lost_workers += outcome.lost_workers
 
@@ -532,7 +534,7 @@ def _recorder(
                 summary=summary,
             )  # fmt: skip
         else:
-            message = error_text(outcome.error or RuntimeError("no summary returned"))
+            message = error_text(outcome.error or CellCoaddRuntimeError("no summary returned"))
             result.failed[task.key] = message
             (out_dir / task.output).unlink(missing_ok=True)  # never an old file beside it
             update.update(state=PatchState.FAILED, error=message)
@@ -551,9 +553,10 @@ def _run_patches_on_dask(
     retries: int,
     bar: Any,
 ) -> list[str]:
-    """The patches as dask tasks (the workers that left during them returned): a patch cut into parts builds each run of cells of
-    equal estimated cost (:meth:`PatchPlan.cell_costs`, ``parts_by_cost``) as a task,
-    and the task writing the file gathers them from the workers that hold them."""
+    """The patches as dask tasks; the workers that left during them are returned. A
+    patch cut into parts builds each run of cells of equal estimated cost
+    (:meth:`PatchPlan.cell_costs`, ``parts_by_cost``) as a task, and the task writing
+    the file gathers them from the workers that hold them."""
     from cellcoadd.builder.patch import parts_by_cost
     from cellcoadd.pipelines.survey.tasks import write_patch_task
 
