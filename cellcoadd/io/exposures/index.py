@@ -44,7 +44,7 @@ from typing import Any
 import hpgeom
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError, CellCoaddFormatError, IndexRowError
+from cellcoadd.errors import CellCoaddError, CellCoaddFormatError, IndexRowError, InputError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.footprint import (
     FOOTPRINT_MARGIN,
@@ -238,6 +238,22 @@ class IndexedExposure:
     @cached_property
     def files(self) -> tuple[FileStamp, ...]:
         return tuple(FileStamp(p, s, m, h) for p, s, m, h in json.loads(self.files_json))
+
+    def not_as_indexed(self, index_path: str) -> InputError | None:
+        """The error naming the first file this input reads that changed or vanished
+        since it was indexed in ``index_path`` (one ``stat`` per file); None when all
+        are as indexed."""
+        for stamp in self.files:
+            reason = stamp.changed()
+            if reason is not None:
+                return InputError(
+                    f"input (visit={self.visit}, detector={self.detector}): {reason} since "
+                    f"it was indexed in {index_path}; run `cellcoadd index` again",
+                    path=stamp.path,
+                    visit=self.visit,
+                    detector=self.detector,
+                )
+        return None
 
     def header(self) -> ExposureHeader:
         """The described header (rows from :meth:`ExposureIndex.by_ids` only)."""

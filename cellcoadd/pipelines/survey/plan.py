@@ -13,7 +13,6 @@ patches whose outer box its footprint, projected on the tract, overlaps.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -150,16 +149,13 @@ def plan_tract(
     ra, dec = tract.pixel_to_sky(x, y)
     rows = index.query(np.column_stack([ra, dec]))
     if bands is not None:
-        rows = [row for row in rows if row.band in set(bands)]
+        wanted_bands = set(bands)
+        rows = [row for row in rows if row.band in wanted_bands]
     changed: dict[int, str] = {}
     for row in rows:  # one stat per file: a done patch of a changed input is never current
-        for stamp in row.files:
-            reason = stamp.changed()
-            if reason is not None:
-                changed[row.id] = (
-                    f"input (visit={row.visit}, detector={row.detector}): {reason} since it "
-                    f"was indexed in {index.path}; run `cellcoadd index` again"
-                )
+        error = row.not_as_indexed(index.path)
+        if error is not None:
+            changed[row.id] = str(error)
     assigned: dict[tuple[str, int, int], list[tuple[IndexedExposure, np.ndarray]]] = {}
     config = tract.config
     side = config.patch_inner
@@ -290,8 +286,3 @@ def _circle_meets_region(ra: float, dec: float, radius: float, region: Region) -
     if np.mod(ra1 - ra0, 360.0) + 2 * grow_ra >= 360.0 or (ra0 == 0.0 and ra1 == 360.0):
         grown = (0.0, 360.0, grown[2], grown[3])
     return bool(in_ra_dec_box(np.array([ra]), np.array([dec]), grown)[0])
-
-
-def index_path_of(path: str | os.PathLike[str]) -> str:
-    """The absolute path of an index (workers open it by this path)."""
-    return os.path.abspath(os.fspath(path))

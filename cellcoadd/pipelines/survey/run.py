@@ -268,8 +268,9 @@ def run_survey(
             )  # fmt: skip
             result.bad_inputs = _bad_inputs_near(unusable, plans, bands)
             tasks, records = _to_build(
-                plans, ledger, result, out_dir, index_path, config, seed, fmt, verify, trust_psf
-            )
+                plans, skymap, ledger, result, out_dir, index_path, config, seed, fmt, verify,
+                trust_psf,
+            )  # fmt: skip
             run_id = ledger.start_run(command or " ".join(sys.argv), len(result.planned))
             done = _recorder(ledger, records, result, out_dir)
             if tasks:
@@ -418,6 +419,7 @@ def _bad_inputs_near(
 
 def _to_build(
     plans: list[TractPlan],
+    skymap: SkyMap,
     ledger: Ledger,
     result: RunResult,
     out_dir: Path,
@@ -438,7 +440,7 @@ def _to_build(
         "seed": seed,
         "version": __version__,
         "format": fmt,
-        "skymap": skymap_fields(plans),
+        "skymap": skymap.config.model_dump(mode="json"),
     }
     tasks: list[PatchTask] = []
     records: dict[PatchKey, PatchRecord] = {}
@@ -506,11 +508,6 @@ def _to_build(
     # the costliest first (inputs: the cost scales with them), in a stable order
     tasks.sort(key=lambda task: (-len(task.inputs), task.key))
     return tasks, records
-
-
-def skymap_fields(plans: list[TractPlan]) -> dict[str, Any]:
-    """The sky map's configuration, as a patch's signature holds it."""
-    return plans[0].tract.config.model_dump(mode="json") if plans else {}
 
 
 def _recorder(

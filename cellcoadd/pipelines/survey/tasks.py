@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cellcoadd.errors import InputError
 from cellcoadd.geometry.tract import Patch
 from cellcoadd.io._files.stamps import file_sha256
 from cellcoadd.io.exposures.index import ExposureIndex
@@ -69,16 +68,9 @@ def task_inputs(task: PatchTask) -> list[DescribedSource]:
         rows = index.by_ids(task.inputs)
     sources = []
     for row in rows:
-        for stamp in row.files:
-            reason = stamp.changed()
-            if reason is not None:
-                raise InputError(
-                    f"input (visit={row.visit}, detector={row.detector}): {reason} since it "
-                    f"was indexed in {task.index_path}; run `cellcoadd index` again",
-                    path=stamp.path,
-                    visit=row.visit,
-                    detector=row.detector,
-                )
+        changed = row.not_as_indexed(task.index_path)
+        if changed is not None:
+            raise changed
         sources.append(row.cross_check(row.source(task.trust_psf)))
     return sources
 
