@@ -559,3 +559,24 @@ def test_worker_environment_gives_dask_the_same_settings():
         for key, value in DASK_WORKER_CONFIG.items():
             if "pre-spawn-environ" not in key:
                 assert dask.config.get(key) == value, key
+
+
+def test_the_held_back_tasks_are_cut_as_the_whole_run_would_be():
+    """Tasks that share out evenly among the workers are never cut, however the held-back
+    tail is reached; otherwise only the last ``tasks % workers`` are."""
+    pytest.importorskip("distributed")
+    from cellcoadd.execution import local_cluster, run_on_dask
+
+    client, close = local_cluster(2)
+    try:
+        for count, expected in ((8, [1] * 8), (5, [1] * 4 + [2])):
+            cuts: dict[int, int] = {}
+
+            def submit(item, attempt, parts, key, cuts=cuts):
+                cuts[item] = parts
+                return [client.submit(time.sleep, 0.05 * (1 + item % 3), key=key, pure=False)]
+
+            run_on_dask(client, list(range(count)), submit, lambda outcome: None, retries=0)
+            assert [cuts[i] for i in range(count)] == expected, count
+    finally:
+        close()
