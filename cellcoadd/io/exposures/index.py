@@ -30,11 +30,12 @@ region, and a few more: the builder's selection is exact.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sqlite3
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -180,9 +181,13 @@ CHECKED_FIELDS = (
 )  # fmt: skip
 
 
-def row_checksum(values: dict[str, Any]) -> str:
-    """SHA-256 of a row's :data:`CHECKED_FIELDS` (canonical JSON)."""
-    return json_sha256({name: values.get(name) for name in CHECKED_FIELDS})
+def row_checksum(values: Mapping[str, Any] | sqlite3.Row) -> str:
+    """SHA-256 of a row's :data:`CHECKED_FIELDS` (a dict or a ``sqlite3.Row``): their
+    ``repr`` joined by a unit separator. ``repr`` of SQLite's values (str, int, float,
+    None) is exact and stable (floats round-trip), and three times cheaper than JSON: a
+    query checks every row it returns (~6 us a row)."""
+    text = "\x1f".join([repr(values[name]) for name in CHECKED_FIELDS])
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 @dataclass(frozen=True)
@@ -582,7 +587,7 @@ class ExposureIndex:
             )
             pixels = healpix_pixels(self.nside, item.corners)
         values["n_pixels"] = len(pixels)
-        values["checksum"] = row_checksum(values)
+        values["checksum"] = row_checksum({name: values.get(name) for name in CHECKED_FIELDS})
         self._db.execute("DELETE FROM exposures WHERE path = ?", (entry.path,))
         names = ", ".join(values)
         marks = ", ".join("?" for _ in values)
@@ -653,8 +658,7 @@ class ExposureIndex:
     def _checked(self, row: sqlite3.Row) -> IndexedExposure:
         """The row as an :class:`IndexedExposure`, after checking it against its checksum
         (and its header against the header's SHA-256, when read)."""
-        values = {name: row[name] for name in CHECKED_FIELDS}
-        damaged = row_checksum(values) != row["checksum"]
+        damaged = row_checksum(row) != row["checksum"]
         if row["header"] is not None and json_sha256(row["header"]) != row["header_sha256"]:
             damaged = True
         if damaged:
