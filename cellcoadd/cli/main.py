@@ -7,7 +7,9 @@ line) unless ``--debug`` is given, in which case the traceback is shown.
 from __future__ import annotations
 
 import sys
+import warnings
 from importlib import import_module
+from typing import TextIO
 
 import click
 
@@ -80,6 +82,8 @@ def main(argv: list[str] | None = None) -> None:
     from cellcoadd.cli.allocator import keep_freed_memory
 
     keep_freed_memory()  # this process's allocator: see the module
+    shown = warnings.showwarning
+    warnings.showwarning = show_warning
     try:
         cli.main(args=args, prog_name="cellcoadd", standalone_mode=False)
     except click.UsageError as err:  # click's usage lines, then our one error line
@@ -103,9 +107,33 @@ def main(argv: list[str] | None = None) -> None:
         message = one_line(str(err)) or type(err).__name__
         click.echo(f"error: {message} (--debug shows the traceback)", err=True)
         sys.exit(1)
+    finally:
+        warnings.showwarning = shown
+
+
+def show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: TextIO | None = None,
+    line: str | None = None,
+) -> None:
+    """A warning as one line on stderr, ``warning: Category: message`` (the message says
+    what to do), written above any progress bar, never with a source line."""
+    from tqdm import tqdm
+
+    text = one_line(str(message)) or category.__name__
+    tqdm.write(f"warning: {category.__name__}: {text}", file=sys.stderr)
 
 
 def one_line(message: str) -> str:
     """Fold a multi-line message (e.g. a pydantic report) into one line."""
     lines = [line.strip() for line in message.strip().splitlines()]
-    return "; ".join(line for line in lines if line and not line.startswith("For further"))
+    text = ""
+    for line in lines:
+        if not line or line.startswith("For further"):
+            continue
+        # a line that announces a list runs into it ("2 failed: a; b"), never "failed:; a"
+        text += line if not text else (" " if text.endswith(":") else "; ") + line
+    return text

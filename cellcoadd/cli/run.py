@@ -150,7 +150,8 @@ def run_command(
         figure=not no_figure,
         command=" ".join(["cellcoadd", *sys.argv[1:]]),
     )
-    click.echo(result.summary())
+    for line in result.summary_lines():
+        click.echo(line, err=line.startswith("warning"))
     if result.bad_inputs:
         click.echo(
             f"warning: {len(result.bad_inputs)} input files the index marks bad or vanished "
@@ -162,7 +163,18 @@ def run_command(
             click.echo(f"  ... and {len(result.bad_inputs) - 10} more")
     click.echo(f"report: {result.report}")
     if not result.ok:
-        lines = [f"  {key}: {why}" for key, why in sorted(result.failed.items())]
-        lines += [f"  tract {t} (planning): {why}" for t, why in sorted(result.plan_failed.items())]
-        count = len(result.failed) + len(result.plan_failed)
-        raise TractRunError(f"{count} failed:\n" + "\n".join(lines))
+        items = [f"{key}: {why}" for key, why in sorted(result.failed.items())]
+        items += [f"tract {t} (planning): {why}" for t, why in sorted(result.plan_failed.items())]
+        what = [
+            _count(len(result.failed), "patch", "patches"),
+            _count(len(result.plan_failed), "tract", "tracts"),
+        ]
+        raise TractRunError(
+            " and ".join(w for w in what if w) + " failed (listed in report.json): "
+            + "; ".join(items)
+        )  # fmt: skip
+
+
+def _count(n: int, one: str, many: str) -> str:
+    """``"1 patch"``, ``"3 patches"``; ``""`` for none."""
+    return "" if n == 0 else f"{n} {one if n == 1 else many}"

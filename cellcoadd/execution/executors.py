@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
@@ -115,7 +116,15 @@ def local_cluster(workers: int) -> tuple[Any, Callable[[], None]]:
         client = distributed.Client(cluster)
 
     def close() -> None:
-        client.close()
-        cluster.close()
+        # every result is written and recorded by now: a worker slow to exit is killed,
+        # which is no news to the user ("Worker process still alive after 4.0 seconds")
+        nanny = logging.getLogger("distributed.nanny")
+        level = nanny.level
+        nanny.setLevel(logging.ERROR)
+        try:
+            client.close()
+            cluster.close()
+        finally:
+            nanny.setLevel(level)
 
     return client, close

@@ -75,6 +75,10 @@ class PatchSummary(BaseModel):
     cpu_s: float = Field(description="worker CPU seconds, summed over parts and the write")
     peak_rss_mb: float
     worker: str = Field(description="host:pid that wrote the file")
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="the build's warnings, one line each (``Category: message``), in order",
+    )
 
 
 class PatchRecord(BaseModel):

@@ -35,7 +35,7 @@ FIGURE_NAME = "coverage.png"
 _COUNTS = ("cells", "empty_cells", "inner_cells", "empty_inner_cells")
 
 
-def _totals(records: Iterable[PatchRecord]) -> dict[str, Any]:
+def totals(records: Iterable[PatchRecord]) -> dict[str, Any]:
     """Patches by state, cells, input records used and rejected by reason, worker
     seconds, retries and lost workers, summed over ``records``."""
     totals: dict[str, Any] = {
@@ -67,6 +67,45 @@ def _totals(records: Iterable[PatchRecord]) -> dict[str, Any]:
     return totals
 
 
+def coverage_lines(counts: dict[str, Any]) -> list[str]:
+    """What the patches of ``counts`` (:func:`totals`) hold, in ``cellcoadd build``'s
+    words: cells and empty cells, input records used and rejected by reason; then a
+    warning line when most cells are empty or most records that touch a cell are lost
+    to CCD edges (the limits of :mod:`cellcoadd.pipelines.coverage`)."""
+    from cellcoadd.pipelines.coverage import EDGE_FRACTION_LIMIT, EMPTY_FRACTION_LIMIT
+
+    rejected = dict(counts["rejected_records"])
+    touching = counts["input_records_used"] + sum(
+        n for reason, n in rejected.items() if reason != "no_overlap"
+    )
+    reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))
+    lines = [
+        f"cells: {counts['cells']} ({counts['empty_cells']} empty; inner cells "
+        f"{counts['inner_cells']}, {counts['empty_inner_cells']} empty); input records (one "
+        f"per cell and overlapping exposure): used {counts['input_records_used']}, "
+        f"rejected: {reasons or 'none'}"
+    ]
+    empty = counts["empty_inner_cells"] / counts["inner_cells"] if counts["inner_cells"] else 0.0
+    edge = rejected.get("edge", 0) / touching if touching else 0.0
+    found = []
+    if empty > EMPTY_FRACTION_LIMIT:
+        found.append(
+            f"{counts['empty_inner_cells']} of {counts['inner_cells']} inner cells are empty"
+        )
+    if edge > EDGE_FRACTION_LIMIT:
+        found.append(
+            f"{100 * edge:.0f}% of the input records that overlap a cell were rejected "
+            "because a CCD edge or gap crosses the cell"
+        )
+    if found:
+        lines.append(
+            f"warning: {' and '.join(found)}: edge-free cells need CCDs much larger than a "
+            "cell's outer box. Look at each tract's coverage.png; add visits, or use "
+            "smaller cells (SkyMapConfig cell_inner, cell_border)."
+        )
+    return lines
+
+
 def patch_entry(record: PatchRecord) -> dict[str, Any]:
     """One patch as a tract's report lists it."""
     entry: dict[str, Any] = {
@@ -94,7 +133,7 @@ def tract_report(tract: Tract, band: str, records: list[PatchRecord]) -> dict[st
         "tract": tract.id,
         "library_version": __version__,
         "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "totals": _totals(records),
+        "totals": totals(records),
         "patches": [patch_entry(r) for r in records],
     }
 
@@ -170,12 +209,12 @@ def write_reports(
         "library_version": __version__,
         "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "this_run": this_run,
-        "totals": _totals(records.values()),
-        "bands": {band: _totals(items) for band, items in sorted(bands.items())},
+        "totals": totals(records.values()),
+        "bands": {band: totals(items) for band, items in sorted(bands.items())},
         "tracts": {
             f"{band}/{tract}": {
                 "report": f"{band}/tract_{tract}/{REPORT_NAME}",
-                **_totals(items),
+                **totals(items),
             }
             for (band, tract), items in sorted(by_tract.items())
         },

@@ -61,7 +61,7 @@ from cellcoadd.pipelines.survey.plan import (
     plan_tract_task,
 )
 from cellcoadd.pipelines.survey.records import PatchKey, PatchRecord, PatchState, PatchSummary
-from cellcoadd.pipelines.survey.report import write_reports
+from cellcoadd.pipelines.survey.report import coverage_lines, totals, write_reports
 from cellcoadd.pipelines.survey.tasks import PatchTask, build_part_task, build_patch_task
 
 #: Output formats: file ending of each.
@@ -88,6 +88,8 @@ class RunResult:
     wall_s: float = 0.0
     report: Path | None = None
     figures: list[Path] = field(default_factory=list)
+    counts: dict[str, Any] = field(default_factory=dict)
+    warnings: dict[PatchKey, list[str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -122,6 +124,26 @@ class RunResult:
         if self.plan_failed:
             text += f", {len(self.plan_failed)} tracts not planned"
         return text + f" ({self.wall_s:.1f} s)"
+
+    def summary_lines(self) -> list[str]:
+        """:meth:`summary`, then what the planned patches hold (cells, empty cells, input
+        records used and rejected by reason, as ``cellcoadd build`` says it) and the
+        build's warnings of the patches built now, one line per kind."""
+        lines = [self.summary()]
+        if self.counts.get("cells"):
+            lines += coverage_lines(self.counts)
+        # one line per kind of warning, whatever the number of patches: the first said,
+        # and how many patches said one (each patch's are in its tract's report.json)
+        by_kind: dict[str, list[tuple[PatchKey, str]]] = {}
+        for key, said in sorted(self.warnings.items()):
+            for text in said:
+                by_kind.setdefault(text.split(":", 1)[0], []).append((key, text))
+        for items in by_kind.values():
+            keys = {key for key, _ in items}
+            key, text = items[0]
+            more = f" (and {len(keys) - 1} more patches: see report.json)" if len(keys) > 1 else ""
+            lines.append(f"warning: {key}: {text}{more}")
+        return lines
 
 
 def output_path(key: PatchKey, fmt: str) -> str:
@@ -282,6 +304,8 @@ def run_survey(
                             client, tasks, plans, done, retries, bar
                         )
             ledger.finish_run(run_id, len(result.built), len(result.failed))
+            planned = set(result.planned)
+            result.counts = totals(r for k, r in ledger.records().items() if k in planned)
             result.wall_s = time.perf_counter() - start
             result.report, result.figures = write_reports(
                 ledger, plans, out_dir, result.as_report(), result.plan_failed,
@@ -526,6 +550,8 @@ def _recorder(
         summary = outcome.result
         if outcome.ok and isinstance(summary, PatchSummary):
             result.built.append(task.key)
+            if summary.warnings:
+                result.warnings[task.key] = summary.warnings
             update.update(
                 state=PatchState.DONE, checksum=summary.checksum, size=summary.size,
                 summary=summary,

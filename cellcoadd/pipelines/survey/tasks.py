@@ -18,6 +18,7 @@ import resource
 import socket
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -93,8 +94,12 @@ def build_part_task(
     wall, cpu = time.perf_counter(), time.process_time()
     inputs = task_inputs(task)
     config = BuildConfig.model_validate_json(task.config_json)
-    coadd = build_patch(task.patch, inputs, config, task.seed, progress=False, cells=cells)
+    # the build's warnings travel with the result: a worker's stderr is nobody's to read
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        coadd = build_patch(task.patch, inputs, config, task.seed, progress=False, cells=cells)
     cost = {
+        "warnings": [f"{w.category.__name__}: {w.message}" for w in caught],
         "inputs": len(inputs),
         "wall_s": time.perf_counter() - wall,
         "cpu_s": time.process_time() - cpu,
@@ -131,6 +136,7 @@ def write_patch_task(task: PatchTask, *parts: tuple[PatchCoadd, dict[str, Any]])
                 rejected[status] = rejected.get(status, 0) + 1
     inner = set(coadd.inner_cell_indices)
     costs = [cost for _, cost in parts]
+    said = [line for cost in costs for line in cost.get("warnings", [])]
     return PatchSummary(
         output=task.output,
         checksum=file_sha256(target),
@@ -149,6 +155,7 @@ def write_patch_task(task: PatchTask, *parts: tuple[PatchCoadd, dict[str, Any]])
         cpu_s=round(sum(c["cpu_s"] for c in costs) + time.process_time() - cpu, 4),
         peak_rss_mb=round(max(peak_rss_mb(), *(c["peak_rss_mb"] for c in costs)), 1),
         worker=f"{socket.gethostname()}:{os.getpid()}",
+        warnings=list(dict.fromkeys(said)),
     )
 
 
