@@ -12,11 +12,14 @@ import pytest
 from exposure_factory import make_exposure
 
 from cellcoadd import Box, BuildConfig, SkyMap, SkyMapConfig, build_cell, build_patch
+from cellcoadd.model.planes import optional_plane_flags
 from cellcoadd.model.psf import GalSimPsf
 
 CONFIG = SkyMapConfig(cell_inner=40, cell_border=15, cells_per_patch=2, patches_per_tract=1)
 # counts at the inputs' zero point 30, so pixel values compare with the inputs' as is
 BUILD = BuildConfig(n_noise=2, psf_size=25, units="count", zero_point=30.0)
+# every optional plane on (psf_corners, ...): the routes between workers must carry them all
+EVERY_PLANE = BUILD.model_copy(update={flag: True for flag in optional_plane_flags().values()})
 # varied inputs: pixel scales, rotations, sub-pixel offsets, shears, SIP, PSF sizes/shapes
 VARIANTS = [
     dict(pixel_scale=0.26, rotation_deg=0.0, offset=(0.3, -0.2), psf=(0.85, 0.0, 0.02)),
@@ -262,19 +265,24 @@ def patch_inputs(tract):
         )
         for i in range(2)
     ]
-    serial = build_patch(tract.patch(0, 0), exposures, BUILD, seed=1, progress=False)
+    serial = build_patch(tract.patch(0, 0), exposures, EVERY_PLANE, seed=1, progress=False)
     return exposures, serial
 
 
 def _assert_same_patch(first, second):
     assert list(first.cells) == list(second.cells)
+    optional = list(optional_plane_flags())
+    assert optional and set(optional) <= set(first.metadata.cell_plane_names)
     for index, cell in first.cells.items():
+        assert all(getattr(cell, name) is not None for name in optional), index
         assert cell.equals(second.cells[index]), index
 
 
 def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
     exposures, serial = patch_inputs
-    parallel = build_patch(tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, workers=2)
+    parallel = build_patch(
+        tract.patch(0, 0), exposures, EVERY_PLANE, seed=1, progress=False, workers=2
+    )
     _assert_same_patch(serial, parallel)
     assert sum(not c.is_empty for c in serial.cells.values()) >= 4
 
@@ -282,7 +290,7 @@ def test_patch_identical_for_any_number_of_workers(tract, patch_inputs):
 def test_patch_identical_on_a_dask_cluster(tract, patch_inputs, dask_client):
     exposures, serial = patch_inputs
     on_dask = build_patch(
-        tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=dask_client
+        tract.patch(0, 0), exposures, EVERY_PLANE, seed=1, progress=False, scheduler=dask_client
     )
     _assert_same_patch(serial, on_dask)
 
@@ -341,7 +349,7 @@ def test_dask_tasks_carry_references_to_exposures_not_pixels(
 
     monkeypatch.setattr(dask_client, "submit", recording_submit)
     on_dask = build_patch(
-        tract.patch(0, 0), exposures, BUILD, seed=1, progress=False, scheduler=dask_client
+        tract.patch(0, 0), exposures, EVERY_PLANE, seed=1, progress=False, scheduler=dask_client
     )
     _assert_same_patch(serial, on_dask)
     assert sorted(cells_built) == sorted(serial.cells)  # each cell in one block

@@ -30,6 +30,7 @@ from cellcoadd import BuildConfig, CellBuildError, Exposure, build_patch
 from cellcoadd.cli.main import main as cli_main
 from cellcoadd.io import api
 from cellcoadd.io.exposures.exposure_io import write_exposure
+from cellcoadd.model.planes import optional_plane_flags
 from cellcoadd.model.psf import GalSimPsf
 
 _DATE = re.compile(rb"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d")
@@ -155,12 +156,14 @@ def test_a_patch_built_in_parts_and_merged_is_the_patch_built_at_once(tmp_path, 
     from cellcoadd.builder.patch import blocks_of, merge_patch_parts
     from cellcoadd.errors import ConfigError, InvalidCoaddError
 
-    patch, good, whole = tiny
+    patch, good, _ = tiny
+    every_plane = TINY_BUILD.model_copy(update=dict.fromkeys(optional_plane_flags().values(), True))
+    whole = build_patch(patch, good, every_plane, seed=1, progress=False, workers=2)
     bands = blocks_of(patch.cells, 3)
     assert len(bands) >= 2
     parts = [
         build_patch(
-            patch, good, TINY_BUILD, seed=1, progress=False, cells=[c.index for c in cells]
+            patch, good, every_plane, seed=1, progress=False, cells=[c.index for c in cells]
         )  # fmt: skip
         for cells in reversed(bands)  # any order
     ]
@@ -235,12 +238,18 @@ def dask_client():
 
 
 def test_files_are_byte_identical_whatever_the_executor(tmp_path, tiny, dask_client):
-    patch, good, serial = tiny
+    """With every optional plane on (psf_corners, ...): each route carries them all."""
+    patch, good, _ = tiny
+    config = TINY_BUILD.model_copy(update=dict.fromkeys(optional_plane_flags().values(), True))
     builds = {
-        "serial": serial,
-        "pool": build_patch(patch, good, TINY_BUILD, seed=1, progress=False, workers=2),
-        "dask": build_patch(patch, good, TINY_BUILD, seed=1, progress=False, scheduler=dask_client),
+        "serial": build_patch(patch, good, config, seed=1, progress=False),
+        "pool": build_patch(patch, good, config, seed=1, progress=False, workers=2),
+        "dask": build_patch(patch, good, config, seed=1, progress=False, scheduler=dask_client),
     }
+    for coadd in builds.values():
+        assert set(optional_plane_flags()) <= set(coadd.metadata.cell_plane_names)
+        assert all(set(cell.plane_names) == set(coadd.metadata.cell_plane_names)
+                   for cell in coadd.cells.values())  # fmt: skip
     for name in ("patch.fits", "patch.fits.fz", "patch.h5"):
         digests = {}
         for executor, coadd in builds.items():

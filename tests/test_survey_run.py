@@ -24,6 +24,7 @@ from run_factory import BUILD, skymap, write_field
 
 from cellcoadd.cli.main import cli
 from cellcoadd.errors import RunLockedError
+from cellcoadd.io import api
 from cellcoadd.io.exposures.index import ExposureIndex, FileStamp, absolute_entry
 from cellcoadd.model.manifest import ManifestEntry
 from cellcoadd.pipelines.survey import PatchKey, plan_tract, run_tract
@@ -502,9 +503,21 @@ def test_parts_per_patch_keeps_every_worker_busy_to_the_end():
 
 def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp_path, monkeypatch):
     """Three patches on two workers: two whole, the third cut in two bands of cells, built
-    as separate tasks and written by a worker; the files equal those of the serial run."""
+    as separate tasks and written by a worker; the files equal those of the serial run.
+    Every optional plane is on (psf_corners, ...): the parts carry them all."""
     pytest.importorskip("distributed")
     from cellcoadd.execution import local_cluster
+    from cellcoadd.model.planes import optional_plane_flags
+
+    # a stamp the 5-pixel cell border holds at the corners
+    config = BUILD.model_copy(
+        update={"psf_size": 11, **dict.fromkeys(optional_plane_flags().values(), True)}
+    )
+    patches = [(0, 0), (1, 1), (2, 2)]
+    run_tract(
+        field / "inputs.sqlite", skymap(), 0, tmp_path / "serial", config=config,
+        patches=patches, progress=False, figure=False,
+    )  # fmt: skip
 
     # a nanny lets this process's environment win over the configuration (as a user's
     # MALLOC_* settings should); an in-process dask worker of another test may have left
@@ -517,15 +530,25 @@ def test_patches_cut_into_parts_on_a_local_cluster_are_byte_identical(field, tmp
         # the workers run with cellcoadd's settings (heap arrays, no 10 ms profiler)
         settings = client.run(_worker_settings)
         result = run_tract(
-            field / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=BUILD,
-            patches=[(0, 0), (1, 1), (2, 2)], scheduler=client, progress=False, figure=False,
+            field / "inputs.sqlite", skymap(), 0, tmp_path / "out", config=config,
+            patches=patches, scheduler=client, progress=False, figure=False,
         )  # fmt: skip
     finally:
         close()
     assert len(settings) == 2
     assert set(settings.values()) == {("33554432", "268435456", "1", False, "1s")}
-    assert not result.failed and _patches(result.built) == {(0, 0), (1, 1), (2, 2)}
-    assert not _same_outputs(tmp_path / "out", field / "reference")
+    assert not result.failed and _patches(result.built) == set(patches)
+    assert not _same_outputs(tmp_path / "out", tmp_path / "serial")
+    written = sorted((tmp_path / "out" / "r" / "tract_0").glob("patch_*"))
+    assert written
+    for path in written:  # every cell of every patch holds every optional plane
+        coadd = api.read(path)
+        assert set(optional_plane_flags()) <= set(coadd.metadata.cell_plane_names)
+        assert all(
+            getattr(cell, name) is not None
+            for cell in coadd.cells.values()
+            for name in optional_plane_flags()
+        )
     report = json.loads((tmp_path / "out" / "r" / "tract_0" / "report.json").read_text())
     assert sorted(p["parts"] for p in report["patches"]) == [1, 1, 2]
     assert sorted(len(p["parts_cpu_s"]) for p in report["patches"]) == [1, 1, 2]

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import itertools
 import traceback
 from collections.abc import Callable, Collection, Generator, Iterator, Mapping, Sequence
@@ -57,6 +58,7 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.patch_coadd import FORMAT_VERSION, PatchCoadd, PatchMetadata
+from cellcoadd.model.planes import INPUTS, plane_names
 from cellcoadd.model.sources import DescribedSource, ExposureSource
 
 #: Most cells built together in one block: bounds a block's memory, e.g. 64 cells of
@@ -112,21 +114,26 @@ def _build_block(
         raise _cell_failed(cell, err, "\n" + traceback.format_exc()) from None
 
 
+def parcel_fields() -> tuple[str, ...]:
+    """What a parcel carries of a cell: every plane of
+    :data:`~cellcoadd.model.planes.PLANES` (optional ones included, ``None`` when absent),
+    its inputs table, then every other argument of :class:`CellCoadd` (identity and boxes)
+    but the WCS (remade from the cell's geometry) and ``common`` (the patch's, attached by
+    :class:`~cellcoadd.model.patch_coadd.PatchCoadd`). Derived, not listed, so that a plane
+    or field added to a cell travels without a change here."""
+    arguments = inspect.signature(CellCoadd).parameters
+    return tuple(
+        dict.fromkeys((*plane_names(), INPUTS, *(a for a in arguments if a not in _NOT_PARCELLED)))
+    )
+
+
+#: Arguments of :class:`CellCoadd` a parcel leaves out (see :func:`parcel_fields`).
+_NOT_PARCELLED = frozenset({"wcs", "common"})
+
+
 def _parcel(coadd: CellCoadd) -> Parcel:
-    """The fields of ``coadd`` but its WCS (see :func:`_unparcel`)."""
-    return {
-        "image": coadd.image,
-        "mask": coadd.mask,
-        "variance": coadd.variance,
-        "noise": coadd.noise,
-        "mfrac": coadd.mfrac,
-        "psf": coadd.psf,
-        "inputs": coadd.inputs,
-        "tract": coadd.tract,
-        "index": coadd.index,
-        "inner_bbox": coadd.inner_bbox,
-        "outer_bbox": coadd.outer_bbox,
-    }
+    """The fields of ``coadd`` but its WCS (see :func:`parcel_fields`, :func:`_unparcel`)."""
+    return {name: getattr(coadd, name) for name in parcel_fields()}
 
 
 def _unparcel(cell: Cell, built: CellCoadd | Parcel) -> CellCoadd:

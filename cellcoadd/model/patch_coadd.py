@@ -293,10 +293,14 @@ class PatchMetadata(BaseModel):
     @property
     def cell_plane_names(self) -> tuple[str, ...]:
         """Names of the planes its build gives each cell, in storage order: the required
-        ones, and ``psf_corners`` when ``build_config.psf_corners`` asks for it."""
-        wanted = {"psf_corners": self.build_config.psf_corners}
+        ones, and each optional one whose ``build_config`` flag
+        (:attr:`~cellcoadd.model.planes.PlaneSpec.config_flag`, e.g. ``psf_corners``)
+        asks for it."""
         return tuple(
-            spec.name for spec in cell_planes.PLANES if not spec.optional or wanted[spec.name]
+            spec.name
+            for spec in cell_planes.PLANES
+            if not spec.optional
+            or (spec.config_flag is not None and getattr(self.build_config, spec.config_flag))
         )
 
     @property
@@ -402,13 +406,28 @@ def check_patch_cell(
         raise InvalidCoaddError(f"cell {key} is empty but its mask lacks NO_DATA somewhere")
 
 
-def check_planes(cell: CellCoadd, present: tuple[str, ...]) -> None:
+def check_planes(cell: CellCoadd, present: tuple[str, ...], *, optional_only: bool = False) -> None:
     """Refuse (InvalidCoaddError) ``cell`` unless it holds exactly the planes ``present``
-    (:attr:`CellCoadd.plane_names`): all the cells of a patch hold the same planes."""
-    if cell.plane_names != tuple(present):
+    (:attr:`CellCoadd.plane_names`): all the cells of a patch hold the same planes, those
+    its build declares (:attr:`PatchMetadata.cell_plane_names`). ``optional_only``: look
+    at the optional planes only (the required ones are checked by the cell itself).
+
+    The error names the cell (``cell=``) and the first plane at fault (``value=``; the
+    planes expected are ``allowed=``)."""
+    names = [spec.name for spec in cell_planes.PLANES if spec.optional or not optional_only]
+    held = tuple(name for name in names if getattr(cell, name, None) is not None)
+    wanted = tuple(name for name in present if name in names)
+    if held != wanted:
+        missing = [name for name in wanted if name not in held]
+        extra = [name for name in held if name not in wanted]
+        plane = (missing or extra)[0]
         raise InvalidCoaddError(
-            f"cell {cell.index} holds the planes {list(cell.plane_names)}, the patch's cells "
-            f"{list(present)}: all the cells of a patch hold the same planes"
+            f"cell {cell.index} {'lacks' if missing else 'has'} the plane {plane!r}: it "
+            f"holds the planes {list(held)}, the patch's cells {list(present)} (as its "
+            "build configuration declares): all the cells of a patch hold the same planes",
+            cell=cell.index,
+            value=plane,
+            allowed=tuple(present),
         )
 
 
@@ -423,8 +442,10 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         Cells of the patch; any may be missing. Each must belong to the patch
         (:attr:`PatchMetadata.all_cell_indices`), be stored under its own index, lie in the
         metadata's tract, have the boxes implied by the sky map, ``n_noise`` realizations,
-        a ``psf_size`` stamp and only named mask bits; an empty cell must have ``NO_DATA``
-        set in every mask pixel.
+        a ``psf_size`` stamp, only named mask bits and exactly the planes its build
+        declares (:attr:`PatchMetadata.cell_plane_names`: an optional plane its
+        configuration asks for, none it does not); an empty cell must have ``NO_DATA`` set
+        in every mask pixel.
 
     Examples
     --------
@@ -443,18 +464,11 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         self.metadata = metadata
         allowed = set(metadata.all_cell_indices)
         checked: dict[tuple[int, int], CellCoadd] = {}
-        first_corners: np.ndarray | None = None
+        present = metadata.cell_plane_names
         for key, cell in cells.items():
             key = (int(key[0]), int(key[1]))
             check_patch_cell(metadata, key, cell, allowed)
-            if checked and (cell.psf_corners is None) != (first_corners is None):
-                raise InvalidCoaddError(
-                    f"cell {key} {'lacks' if cell.psf_corners is None else 'has'} psf_corners "
-                    f"but cell {next(iter(checked))} "
-                    f"{'has' if cell.psf_corners is None else 'lacks'} them: all the cells of "
-                    "a patch have them or none does"
-                )
-            first_corners = cell.psf_corners if not checked else first_corners
+            check_planes(cell, present, optional_only=True)  # those its build declares
             checked[key] = cell
         common = metadata.cell_common
         for key, cell in checked.items():  # a cell taken from the patch describes itself

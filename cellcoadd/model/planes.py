@@ -67,6 +67,10 @@ class PlaneSpec:
     optional : bool
         The plane may be absent (``None`` in memory, nothing stored): cells built without
         it, and files of a format version before it.
+    config_flag : str or None
+        For an optional plane, the boolean field of
+        :class:`~cellcoadd.model.build_config.BuildConfig` that asks a build for it: a
+        patch's cells hold the plane exactly when its configuration says so.
     """
 
     name: str
@@ -78,6 +82,7 @@ class PlaneSpec:
     doc: str
     layers: int = 0
     optional: bool = False
+    config_flag: str | None = None
 
     @property
     def stored_dtype(self) -> np.dtype:
@@ -165,6 +170,7 @@ PLANES: tuple[PlaneSpec, ...] = (
         doc="coadd PSF at the 4 corner pixels of the inner box, each summing to 1 (1.4)",
         layers=4,
         optional=True,
+        config_flag="psf_corners",
     ),
 )
 
@@ -195,6 +201,13 @@ def required_plane_names() -> tuple[str, ...]:
     return tuple(spec.name for spec in PLANES if not spec.optional)
 
 
+def optional_plane_flags() -> dict[str, str]:
+    """The :class:`~cellcoadd.model.build_config.BuildConfig` field that asks for each
+    optional plane, by plane name: a configuration with all of them true builds every
+    optional plane."""
+    return {spec.name: spec.config_flag for spec in PLANES if spec.config_flag is not None}
+
+
 def plane(name: str) -> PlaneSpec:
     """The description of plane ``name`` (KeyError if there is none)."""
     return {spec.name: spec for spec in PLANES}[name]
@@ -209,6 +222,7 @@ __all__ = [
     "UnitKind",
     "cell_objects",
     "grid_plane_names",
+    "optional_plane_flags",
     "plane",
     "plane_names",
     "required_plane_names",
