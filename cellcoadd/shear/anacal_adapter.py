@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from cellcoadd.errors import CellCoaddRangeError, MissingDependencyError, ShearError
-from cellcoadd.shear.response import paired_shear_bias
+from cellcoadd.shear.response import Groups, paired_shear_bias
 
 #: One AnaCal measurement: ``flags`` (0: good, :data:`ANACAL_FAILED`), the ellipticities,
 #: their shear responses, the flux moment ``m00`` and AnaCal's ``flux`` and ``s2n``.
@@ -198,7 +198,7 @@ def measure_fpfs(
 
 def paired_bias(
     plus: np.ndarray, minus: np.ndarray, true_g: float = 0.02, n_blocks: int = 100,
-    group: int = 1,
+    group: Groups = 1,
 ) -> dict[str, float]:  # fmt: skip
     """``m1, c1, c2`` and jackknife errors from :data:`ANACAL_DTYPE` rows of paired objects.
 

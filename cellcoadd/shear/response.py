@@ -19,7 +19,9 @@ optional cuts) and ``e`` the ``(g1, g2)`` estimator:
   it is exactly zero;
 * calibrated mean shear ``g = (R + R_S)^-1 <e>``.
 
-Errors are delete-one-block jackknife over objects (contiguous blocks in input order).
+Errors are delete-one-block jackknife over objects (contiguous blocks in input order);
+objects whose estimates are correlated (ring partners: an object and its 90-degree-rotated
+copy) are kept in one block by giving them one group key (:data:`Groups`).
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ from cellcoadd.shear.metacal import METACAL_TYPES
 Results = Mapping[str, np.ndarray] | Sequence[Mapping[str, np.ndarray]]
 #: A selection maps one catalogue (structured array) to a boolean mask of kept objects.
 Selection = Callable[[np.ndarray], np.ndarray]
+#: Rows a jackknife removes together: an int ``g``, each run of ``g`` consecutive rows; or
+#: one integer key per row, non-decreasing, rows of equal key together (ring partners
+#: ``2k, 2k + 1`` of a catalogue whose failed objects were dropped: ``index // 2``).
+Groups = int | np.ndarray
 
 _SHEARED = (("1p", "1m"), ("2p", "2m"))
 # Columns of the per-object sums: count and <e> on noshear (3), count and response sums
@@ -208,25 +214,52 @@ def _calibrated_shear(sums: np.ndarray, step: float) -> np.ndarray:
     return response.shear
 
 
+def group_ranks(n_objects: int, group: Groups) -> np.ndarray:
+    """Per row, the rank ``0, 1, ...`` of its group (:data:`Groups`) in row order.
+
+    Raises
+    ------
+    CellCoaddRangeError
+        An int ``group`` below 1.
+    ShearError
+        Keys that are not one per row or that decrease.
+    """
+    if isinstance(group, np.ndarray):
+        keys = np.asarray(group)
+        if keys.shape != (n_objects,) or (n_objects and np.any(np.diff(keys) < 0)):
+            raise ShearError(
+                f"jackknife group keys must be {n_objects} non-decreasing values, one per "
+                f"row, got shape {keys.shape}",
+                value=keys.shape,
+            )
+        return np.concatenate([[0], np.cumsum(np.diff(keys) != 0)]) if n_objects else keys
+    if group < 1:
+        raise CellCoaddRangeError(f"group must be >= 1, got {group}", value=group, low=1)
+    return np.arange(n_objects) // group
+
+
 def jackknife(
     terms: np.ndarray,
     n_blocks: int,
     estimator: Callable[[np.ndarray], np.ndarray],
-    group: int = 1,
+    group: Groups = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimate from all objects, and its delete-one-block jackknife standard error.
 
-    Rows ``group k, ..., group k + group - 1`` always fall in the same block."""
+    The rows of a group (:data:`Groups`: each run of ``group`` rows, or rows of equal
+    key) always fall in the same block, whatever the number of rows (odd included), so
+    correlated rows such as ring partners are never split between blocks: splitting them
+    makes the error wrong (a ``c`` the partners cancel gets an error many times too
+    large)."""
     n_objects = len(terms)
-    if group < 1:
-        raise CellCoaddRangeError(f"group must be >= 1, got {group}", value=group, low=1)
-    n_groups = -(-n_objects // group)
+    ranks = group_ranks(n_objects, group)
+    n_groups = int(ranks[-1]) + 1 if n_objects else 0
     n_blocks = min(n_blocks, n_groups)
     if n_blocks < 2:
         raise ShearError(
             f"a jackknife needs at least 2 groups of objects, got {n_groups}", value=n_groups
         )
-    labels = (np.arange(n_objects) // group) * n_blocks // n_groups
+    labels = ranks * n_blocks // n_groups
     block_sums = np.zeros((n_blocks, terms.shape[1]))
     np.add.at(block_sums, labels, terms)
     total = block_sums.sum(axis=0)
@@ -253,7 +286,7 @@ def paired_shear_bias(
     shear_of: Callable[[np.ndarray], np.ndarray],
     true_g: float,
     n_blocks: int,
-    group: int = 1,
+    group: Groups = 1,
 ) -> dict[str, float]:
     """``m1, c1, c2`` and their jackknife errors from paired ``+g`` / ``-g`` objects.
 
@@ -329,7 +362,7 @@ def multiplicative_bias(
     step: float = 0.01,
     selection: Selection | None = None,
     n_blocks: int = 100,
-    group: int = 1,
+    group: Groups = 1,
 ) -> dict[str, float]:
     """Multiplicative and additive shear biases from paired simulations.
 
@@ -338,8 +371,9 @@ def multiplicative_bias(
     calibrated mean shears (each with its own responses), ``m1 = (g+_1 - g-_1) /
     (2 true_g) - 1`` and ``c_i = (g+_i + g-_i) / 2``: the pairing cancels the shape noise
     in ``m1``. Errors are jackknife over blocks of objects, removing a pair's two members
-    together, and each run of ``group`` consecutive rows (e.g. ``group=2`` for objects and
-    their 90-degree-rotated partners in rows ``2k, 2k + 1``) together.
+    together, and the rows of each ``group`` (:data:`Groups`: e.g. ``group=2`` for
+    objects and their 90-degree-rotated partners in rows ``2k, 2k + 1``, or the keys
+    ``index // 2`` when some rows were dropped) together.
 
     Returns
     -------
@@ -376,7 +410,7 @@ def bias_by_selection(
     true_g: float = 0.02,
     step: float = 0.01,
     n_blocks: int = 100,
-    group: int = 1,
+    group: Groups = 1,
 ) -> dict[str, dict[str, float]]:
     """``m1`` of the same paired objects under several selections, and each one's paired
     difference from the first.

@@ -17,13 +17,14 @@ from cellcoadd.pipelines.validation.bias_table import summary_fields
 from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue
 from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear.anacal_adapter import paired_bias
+from cellcoadd.shear.response import Groups
 
 
 def summarize_anacal(
-    settings: ValidationSettings, catalogue: PairCatalogue, group: int
+    settings: ValidationSettings, catalogue: PairCatalogue, group: Groups
 ) -> dict[str, Any]:
     """Biases and diagnostics of a catalogue of AnaCal pairs (``group``: jackknife rows
-    removed together, 2 for ring partners)."""
+    removed together, :data:`~cellcoadd.shear.response.Groups`: ring partners)."""
     plus, minus = catalogue.plus["anacal"], catalogue.minus["anacal"]
     good_plus, good_minus = plus["flags"] == 0, minus["flags"] == 0
     if not np.any(good_plus & good_minus):

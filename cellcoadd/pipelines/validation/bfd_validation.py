@@ -22,6 +22,7 @@ from cellcoadd.pipelines.validation.bias_table import summary_fields
 from cellcoadd.pipelines.validation.stamp_pairs import PairCatalogue, bfd_noise_sigma, bfd_templates
 from cellcoadd.pipelines.validation.validation_settings import ValidationSettings
 from cellcoadd.shear import bfd
+from cellcoadd.shear.response import Groups
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,10 +96,10 @@ def bfd_posterior(
 
 
 def summarize_bfd(
-    settings: ValidationSettings, catalogue: PairCatalogue, group: int
+    settings: ValidationSettings, catalogue: PairCatalogue, group: Groups
 ) -> dict[str, Any]:
     """Biases and diagnostics of a catalogue of BFD pairs (``group``: jackknife rows
-    removed together, 2 for ring partners)."""
+    removed together, :data:`~cellcoadd.shear.response.Groups`: ring partners)."""
     start = time.process_time()
     posterior = bfd_posterior(settings, catalogue)
     bias = bfd.paired_bias(

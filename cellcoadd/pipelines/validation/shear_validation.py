@@ -51,6 +51,7 @@ from cellcoadd.pipelines.validation.validation_settings import (
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
 from cellcoadd.shear.response import (
+    Groups,
     bias_by_selection,
     cuts_for_shape,
     multiplicative_bias,
@@ -243,17 +244,13 @@ def cut_comparison(
     )
 
 
-def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> int:
-    """Rows removed together by the jackknife: ring partners (indices 2k, 2k + 1)."""
-    index = catalogue.index
-    paired = (
-        settings.rotated_partners
-        and len(index) % 2 == 0
-        and len(index) >= 4
-        and np.all(index[::2] % 2 == 0)
-        and np.all(index[1::2] == index[::2] + 1)
-    )
-    return 2 if paired else 1
+def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> Groups:
+    """Rows removed together by the jackknife: ring partners (objects ``2k, 2k + 1``,
+    keyed ``index // 2``), whatever the number of objects (odd: the last alone) and
+    whichever objects were dropped; each row alone without ring partners."""
+    if settings.rotated_partners:
+        return np.asarray(catalogue.index, dtype=np.int64) // 2
+    return 1
 
 
 def validate_shear(

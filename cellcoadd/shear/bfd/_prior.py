@@ -59,7 +59,7 @@ from cellcoadd.shear.bfd._moments import (
     measure_moments,
     moment_coefficients,
 )
-from cellcoadd.shear.response import paired_shear_bias
+from cellcoadd.shear.response import Groups, paired_shear_bias
 
 __all__ = [
     "Pqr",
@@ -505,7 +505,7 @@ def paired_bias(
     prior: TemplatePrior,
     true_g: float = 0.02,
     n_blocks: int = 100,
-    group: int = 1,
+    group: Groups = 1,
 ) -> dict[str, float]:
     """``m1, c1, c2`` and jackknife errors of BFD on paired ``+g`` / ``-g`` targets.
 
