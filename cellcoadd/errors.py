@@ -383,8 +383,27 @@ class CellCoaddFormatError(CellCoaddError):
 
     def __init__(self, path: str | os.PathLike[str], problem: str, **facts: Any) -> None:
         path = os.fspath(path)
+        problem = _one_line_without(problem, path)
         super().__init__(f"{path}: {problem}", path=path, **facts)
         self.problem = problem
+
+
+def _one_line_without(problem: str, path: str) -> str:
+    """``problem`` on one line, without the lines that only repeat ``path`` (CFITSIO's
+    messages name the file on lines of their own, several times)."""
+    if "\n" not in problem:
+        return problem
+    names = {path, os.path.abspath(path), os.path.realpath(path)}
+    kept: list[str] = []
+    for line in (line.strip() for line in problem.splitlines()):
+        if line in names:
+            if kept and kept[-1].endswith(":"):
+                kept[-1] = kept[-1][:-1]
+        elif line in {")", "]"} and kept:
+            kept[-1] += line
+        elif line:
+            kept.append(line)
+    return "; ".join(kept)
 
 
 class DamagedDataError(CellCoaddError, ValueError):

@@ -384,3 +384,17 @@ def test_exposure_reader_lets_programming_errors_through(tmp_path, monkeypatch) 
     with pytest.raises(CellCoaddFormatError) as info:
         read_exposure(path)
     assert info.value.path == str(path)
+
+
+def test_a_cfitsio_failure_is_one_line_naming_the_file_once(tmp_path) -> None:
+    """CFITSIO's message names the file on lines of its own, several times: the error says
+    it once, on one line."""
+    from cellcoadd.io import read_exposure
+
+    path = tmp_path / "cut.fits"
+    path.write_bytes(b"SIMPLE  =                    T" + b" " * 50 + b"BITPIX  = ")  # no END
+    with pytest.raises(CellCoaddFormatError) as info:
+        read_exposure(path)
+    message = str(info.value)
+    assert "\n" not in message and message.count(str(path)) == 1, message
+    assert message.startswith(f"{path}: ") and "FITSIO status" in message
