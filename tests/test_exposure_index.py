@@ -209,8 +209,12 @@ def test_index_command_updates_and_summarises(tmp_path):
     bad = tmp_path / "empty.fits"
     bad.write_bytes(b"")
     result = runner.invoke(cli, ["index", *map(str, paths), str(bad), "--db", db, "-q"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output  # a bad file: not a success
     assert "9 added" in result.output and "1 bad" in result.output and "empty.fits" in result.output
+    assert "1 file is bad" in result.output and "--allow-bad" in result.output
+    result = runner.invoke(cli, ["index", *map(str, paths), str(bad), "--db", db, "--allow-bad"])
+    assert result.exit_code == 0, result.output
+    assert "9 unchanged" in result.output and "bad: " in result.output
     result = runner.invoke(cli, ["index", "--db", db, "--stats"])
     assert result.exit_code == 0, result.output
     assert "10 files (9 usable, 1 bad" in result.output and "band r: 9 files" in result.output

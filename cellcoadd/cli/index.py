@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from cellcoadd.cli.options import quiet_option
+from cellcoadd.geometry.footprint import MAX_NSIDE
 
 
 @click.command("index")
@@ -24,7 +25,15 @@ from cellcoadd.cli.options import quiet_option
 @click.option("--db", required=True, type=click.Path(dir_okay=False), help="Index .sqlite file.")
 @click.option("--checksum", is_flag=True, help="Also compare SHA-256s (reads every byte).")
 @click.option("--workers", type=int, default=1, show_default=True, help="Processes reading.")
-@click.option("--nside", type=int, default=None, help="HEALPix nside of a new index [512].")
+@click.option(
+    "--nside",
+    type=click.IntRange(1, MAX_NSIDE),
+    default=None,
+    help=f"HEALPix nside of a new index, a power of 2 up to {MAX_NSIDE} [512].",
+)
+@click.option(
+    "--allow-bad", is_flag=True, help="Exit 0 even when files are bad (they are still listed)."
+)
 @click.option("--stats", is_flag=True, help="Summarise the index (files, bands, visits, area).")
 @click.option("--json", "as_json", is_flag=True, help="--stats as JSON.")
 @quiet_option
@@ -37,6 +46,7 @@ def index_command(
     nside: int | None,
     stats: bool,
     as_json: bool,
+    allow_bad: bool,
     quiet: bool,
 ) -> None:
     """Index input files: read their headers once into SQLite, for `cellcoadd run`.
@@ -45,8 +55,10 @@ def index_command(
     HEALPix pixels for the queries), PSF model file and the size and mtime of its files
     go into one SQLite row. Running it again adds new files, re-reads changed ones and
     reports files that vanished. Files that cannot be read are stored with the reason
-    and listed. Survey files (LSST, DES, other layouts) come with their PSF model files
-    in a --manifest. `cellcoadd run --index` builds patches from it.
+    and listed, one line each on stderr (also with -q); the command then exits with
+    status 1 unless --allow-bad is given. Two files of the same (visit, detector) are
+    refused: the second is bad. Survey files (LSST, DES, other layouts) come with their
+    PSF model files in a --manifest. `cellcoadd run --index` builds patches from it.
 
     \b
     Examples:
@@ -56,6 +68,7 @@ def index_command(
     """
     from tqdm.auto import tqdm
 
+    from cellcoadd.geometry.footprint import check_nside
     from cellcoadd.io.exposures.index import DEFAULT_NSIDE, ExposureIndex, absolute_entry
     from cellcoadd.io.exposures.manifest_io import read_manifest
     from cellcoadd.model.manifest import ManifestEntry
@@ -68,6 +81,9 @@ def index_command(
         raise click.UsageError("give EXPOSURE_FILES, --manifest or --stats")
     if not entries and not Path(db).is_file():
         raise click.ClickException(f"{db}: no such exposure index")
+    if nside is not None:
+        check_nside(nside)  # a power of 2, before any file is touched
+    bad = 0
     with ExposureIndex(db, nside=nside or DEFAULT_NSIDE) as index:
         if nside is not None and nside != index.nside:
             raise click.ClickException(f"{db} has nside {index.nside}, not {nside}")
@@ -80,6 +96,7 @@ def index_command(
             click.echo(f"{db}: {update.summary()}")
             for path, reason in update.bad:
                 click.echo(f"bad: {path}: {reason}", err=True)
+            bad = len(update.bad)
             for path in update.vanished:
                 click.echo(f"vanished: {path}", err=True)
         if stats:
@@ -90,6 +107,10 @@ def index_command(
                 click.echo(_stats_text(summary))
                 for path, reason in index.bad_files():
                     click.echo(f"  not usable: {path}: {reason}")
+    if bad and not allow_bad:
+        raise click.ClickException(
+            f"{bad} file{'s are' if bad > 1 else ' is'} bad (listed above; --allow-bad to exit 0)"
+        )
 
 
 def _stats_text(summary: dict) -> str:

@@ -14,11 +14,21 @@ from collections.abc import Iterable, Sequence
 import hpgeom
 import numpy as np
 
-from cellcoadd.errors import ConfigError
+from cellcoadd.errors import CellCoaddRangeError, ConfigError, GeometryError
 from cellcoadd.geometry.box import Box
 
 #: Pixels by which a footprint's corners are pushed outward (distortion between corners).
 FOOTPRINT_MARGIN = 8.0
+
+#: Finest HEALPix resolution of a spatial key: nside 65536 pixels are 3.2 arcsec on a side,
+#: so an LSST detector (13 arcmin) overlaps ~60,000 of them. A finer key stores more rows
+#: than any query can use (nside 67108864 made a 337 MB index of one exposure in 120 s).
+MAX_NSIDE = 1 << 16
+
+#: Most HEALPix pixels one footprint may overlap (an LSST detector at :data:`MAX_NSIDE`
+#: overlaps ~95,000, counted as :func:`estimated_pixels` does; at nside 512, ~10). More
+#: means a WCS of the wrong scale or an nside too fine, and costs minutes and gigabytes.
+MAX_FOOTPRINT_PIXELS = 1 << 18
 
 
 def box_corners(box: Box, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -37,12 +47,94 @@ def sky_corners(wcs: object, box: Box, margin: float = FOOTPRINT_MARGIN) -> np.n
     return np.column_stack([np.mod(ra, 360.0), dec])
 
 
-def healpix_pixels(nside: int, corners: np.ndarray) -> np.ndarray:
-    """Nested HEALPix pixels overlapping the convex polygon ``corners`` ((n, 2) RA/Dec, deg)."""
-    return np.asarray(
-        hpgeom.query_polygon(nside, corners[:, 0], corners[:, 1], inclusive=True, nest=True),
-        dtype=np.int64,
-    )
+def check_nside(nside: int) -> int:
+    """``nside`` after checking it is a power of 2 in ``1 ..`` :data:`MAX_NSIDE`.
+
+    Raises
+    ------
+    CellCoaddRangeError
+        Naming the value and the allowed range.
+    """
+    if isinstance(nside, bool) or not isinstance(nside, (int, np.integer)):
+        raise CellCoaddRangeError(
+            f"HEALPix nside {nside!r} is not an integer (a power of 2, 1 to {MAX_NSIDE})",
+            value=nside,
+            low=1,
+            high=MAX_NSIDE,
+        )
+    nside = int(nside)
+    if not 1 <= nside <= MAX_NSIDE or nside & (nside - 1):
+        raise CellCoaddRangeError(
+            f"HEALPix nside {nside} is not a power of 2 from 1 to {MAX_NSIDE}",
+            value=nside,
+            low=1,
+            high=MAX_NSIDE,
+        )
+    return nside
+
+
+def estimated_pixels(nside: int, corners: np.ndarray) -> float:
+    """About how many HEALPix pixels (``nside``) the polygon ``corners`` ((n, 2) RA/Dec,
+    deg) overlaps, from its circumscribed cap grown by two pixels (no pixel is listed):
+    an upper bound within a factor ~2 for a quadrilateral footprint."""
+    ra, dec = np.radians(corners[:, 0]), np.radians(corners[:, 1])
+    xyz = np.column_stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
+    centre = xyz.mean(axis=0)
+    norm = np.linalg.norm(centre)
+    if not norm > 1e-12:  # corners around a great circle: a hemisphere or more
+        return 12.0 * nside * nside
+    radius = float(np.max(np.arccos(np.clip(xyz @ (centre / norm), -1.0, 1.0))))
+    pixel_area = 4.0 * np.pi / (12.0 * nside * nside)  # sr
+    radius = min(radius + 2.0 * np.sqrt(pixel_area), np.pi)
+    return float(min(2.0 * np.pi * (1.0 - np.cos(radius)) / pixel_area, 12.0 * nside * nside))
+
+
+def healpix_pixels(
+    nside: int, corners: np.ndarray, max_pixels: int | None = MAX_FOOTPRINT_PIXELS
+) -> np.ndarray:
+    """Nested HEALPix pixels overlapping the convex polygon ``corners`` ((n, 2) RA/Dec, deg).
+
+    Parameters
+    ----------
+    nside : int
+        HEALPix resolution (:func:`check_nside`).
+    corners : numpy.ndarray
+        ``(n, 2)`` RA/Dec (deg) in order around the polygon, ``n >= 3``.
+    max_pixels : int or None
+        Refuse, before listing any pixel, a polygon estimated
+        (:func:`estimated_pixels`) to overlap more pixels; None: no bound.
+
+    Raises
+    ------
+    GeometryError
+        For corners that are not finite, a polygon over ``max_pixels`` pixels (naming
+        the estimate and the bound), or a degenerate one (two corners in one place or on
+        one line, as a pixel scale of 1e-7 arcsec gives).
+    """
+    corners = np.asarray(corners, dtype=float)
+    if corners.ndim != 2 or corners.shape[0] < 3 or corners.shape[1] != 2:
+        raise GeometryError(f"a footprint polygon needs (n >= 3, 2) corners, got {corners.shape}")
+    if not np.all(np.isfinite(corners)):
+        raise GeometryError(f"footprint corners {corners.tolist()} are not all finite")
+    if max_pixels is not None:
+        estimate = estimated_pixels(nside, corners)
+        if estimate > max_pixels:
+            raise GeometryError(
+                f"the footprint would overlap ~{estimate:.3g} HEALPix pixels at nside {nside}, "
+                f"more than the {max_pixels} accepted (a WCS of the wrong pixel scale, or an "
+                "nside too fine?)",
+                value=estimate,
+                allowed=max_pixels,
+            )
+    try:
+        found = hpgeom.query_polygon(nside, corners[:, 0], corners[:, 1], inclusive=True, nest=True)
+    except (ValueError, RuntimeError) as err:  # hpgeom: "Polygon has degenerate corner."
+        raise GeometryError(
+            f"a degenerate footprint polygon ({err}): its corners {corners.tolist()} (deg) "
+            "are not distinct points around a convex area (a pixel scale far too small?)",
+            value=corners.tolist(),
+        ) from None
+    return np.asarray(found, dtype=np.int64)
 
 
 def polygon_area(corners: np.ndarray) -> float:

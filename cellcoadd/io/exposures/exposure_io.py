@@ -52,7 +52,7 @@ from cellcoadd.geometry.wcs_utils import canonical_wcs, shifted_wcs
 from cellcoadd.io._files.atomic import atomic_write, exists_error
 from cellcoadd.io._files.disk_space import check_free_space
 from cellcoadd.io._files.path_gate import gate_read, gate_write
-from cellcoadd.io._files.read_checks import is_file_failure
+from cellcoadd.io._files.read_checks import MAX_PLANE_PIXELS, is_file_failure
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
 from cellcoadd.io._fits.checksums import (
     DATACRC_PLACEHOLDER,
@@ -399,14 +399,22 @@ def _check_plane_dims(fits_file: fitsio.FITS, names: list[str], shape: tuple[int
 
 
 def _check_declared_sizes(fits_file: fitsio.FITS, names: list[str], raw: BinaryIO) -> None:
-    """Before any data is read: no image HDU declares more bytes than its stored data
-    unit can hold (a tile-compressed HDU is inflated whole by CFITSIO)."""
+    """Before any data is read: no image HDU declares more than
+    :data:`~cellcoadd.io._files.read_checks.MAX_PLANE_PIXELS` pixels, nor more bytes than
+    its stored data unit can hold (a tile-compressed HDU is inflated whole by CFITSIO)."""
     size = os.fstat(raw.fileno()).st_size
     for name in ("IMAGE", "MASK", "VARIANCE", "PSF", "META"):
         if name not in names:
             continue
         hdu = fits_file[name]
         dims = [int(d) for d in hdu.get_dims()]
+        pixels = int(np.prod(dims, dtype=np.float64)) if dims else 0
+        if hdu.get_exttype() == "IMAGE_HDU" and pixels > MAX_PLANE_PIXELS:
+            shape = " x ".join(str(d) for d in reversed(dims))  # NAXIS1 first
+            raise _fail(
+                f"HDU {name} declares a {shape} image ({pixels} pixels), more than the "
+                f"{MAX_PLANE_PIXELS} accepted: refused before reading it"
+            )
         header = hdu.read_header()
         bitpix = header.get("ZBITPIX", header.get("BITPIX", 8))
         declared = int(np.prod(dims, dtype=np.float64)) * abs(int(bitpix)) // 8

@@ -45,16 +45,23 @@ from typing import Any
 import hpgeom
 import numpy as np
 
-from cellcoadd.errors import CellCoaddError, CellCoaddFormatError, IndexRowError, InputError
+from cellcoadd.errors import (
+    CellCoaddError,
+    CellCoaddFormatError,
+    GeometryError,
+    IndexRowError,
+    InputError,
+)
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.footprint import (
     FOOTPRINT_MARGIN,
+    check_nside,
     healpix_pixels,
     polygon_area,
     sky_corners,
 )
-from cellcoadd.geometry.wcs_utils import canonical_wcs
-from cellcoadd.io._files.path_gate import gate_read, gate_write
+from cellcoadd.geometry.wcs_utils import canonical_wcs, pixel_area
+from cellcoadd.io._files.path_gate import gate_create, gate_read
 from cellcoadd.io._files.sqlite_files import open_own_database
 from cellcoadd.io._files.stamps import FileStamp, json_sha256
 from cellcoadd.model.manifest import Manifest, ManifestEntry
@@ -218,6 +225,12 @@ class IndexedExposure:
         Every file it reads (exposure, PSF model, background) as indexed.
     header_json : str or None
         The described header (:func:`header_from_json`); None when not read (queries).
+    index_path : str
+        The index file the row was read from (named by errors).
+
+    A stored column that does not decode as its kind (JSON of the right shape) raises
+    :class:`~cellcoadd.errors.IndexRowError` naming the index, the row, the file and the
+    column, when first asked for: only what uses this input fails.
     """
 
     id: int
@@ -230,19 +243,43 @@ class IndexedExposure:
     corners_json: str = field(repr=False)
     files_json: str = field(repr=False)
     header_json: str | None = field(default=None, repr=False)
+    index_path: str = field(default="", repr=False)
+
+    def damaged(self, column: str, problem: object) -> IndexRowError:
+        """The error naming this row's ``column`` and what is wrong with it."""
+        return IndexRowError(
+            f"{self.path}: row {self.id} of the exposure index {self.index_path or '?'}: "
+            f"its {column} column is unusable ({_short_text(problem)}): run `cellcoadd index "
+            "--checksum` again",
+            path=self.path,
+            row=self.id,
+            fields=(column,),
+        )
 
     @cached_property
     def entry(self) -> ManifestEntry:
-        entry = ManifestEntry.model_validate_json(self.entry_json)
+        try:
+            entry = ManifestEntry.model_validate_json(self.entry_json)
+        except (TypeError, ValueError) as err:  # pydantic's ValidationError is a ValueError
+            raise self.damaged("entry", err) from None
         return entry.model_copy(update={"trust_psf": False}) if entry.trust_psf else entry
 
     @cached_property
     def corners(self) -> np.ndarray:
-        return np.asarray(json.loads(self.corners_json), dtype=float)
+        try:
+            corners = np.asarray(json.loads(self.corners_json), dtype=float)
+        except (TypeError, ValueError, OverflowError) as err:
+            raise self.damaged("corners", err) from None
+        if corners.shape != (4, 2) or not np.all(np.isfinite(corners)):
+            raise self.damaged("corners", "not 4 finite RA/Dec pairs")
+        return corners
 
     @cached_property
     def files(self) -> tuple[FileStamp, ...]:
-        return tuple(FileStamp(p, s, m, h) for p, s, m, h in json.loads(self.files_json))
+        files = _decoded_files(self.files_json)
+        if not files:
+            raise self.damaged("files", "not a list of [path, size, mtime_ns, sha256]")
+        return tuple(FileStamp(p, s, m, h) for p, s, m, h in files)
 
     def not_as_indexed(self, index_path: str) -> InputError | None:
         """The error naming the first file this input reads that changed or vanished
@@ -261,10 +298,21 @@ class IndexedExposure:
         return None
 
     def header(self) -> ExposureHeader:
-        """The described header (rows from :meth:`ExposureIndex.by_ids` only)."""
+        """The described header (rows from :meth:`ExposureIndex.by_ids` only).
+
+        Raises
+        ------
+        IndexRowError
+            When the stored header does not decode (names the row and the column).
+        """
         if self.header_json is None:
             raise CellCoaddFormatError(self.path, "its header was not read from the index")
-        return header_from_json(self.header_json)
+        try:
+            return header_from_json(self.header_json)
+        except CellCoaddError as err:
+            raise self.damaged("header", err) from None
+        except (TypeError, ValueError, KeyError, IndexError, OverflowError) as err:
+            raise self.damaged("header", f"{type(err).__name__}: {err}") from None
 
     def source(self, trust_psf: bool = False) -> ExposureSource:
         """The exposure source of the file (reads the PSF model file of survey layouts);
@@ -287,6 +335,7 @@ class IndexedExposure:
             Naming the file, the row and each field that differs.
         """
         source = source or self.source()
+        header = self.header()  # IndexRowError if the stored header does not decode
         stored = json.loads(self.header_json or "{}")
         found = json.loads(header_to_json(source.header()))
         fields = tuple(name for name in found if stored.get(name) != found[name])
@@ -302,12 +351,17 @@ class IndexedExposure:
                 row=self.id,
                 fields=fields,
             )
-        return DescribedSource(source, header_from_json(self.header_json or ""))
+        return DescribedSource(source, header)
 
 
 def _short(value: Any) -> str:
     text = json.dumps(value, separators=(",", ":"))
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _short_text(value: object) -> str:
+    text = str(value).replace("\n", " ")
+    return text if len(text) <= 120 else text[:117] + "..."
 
 
 def source_of(entry: ManifestEntry) -> ExposureSource:
@@ -335,17 +389,27 @@ def entry_files(entry: ManifestEntry) -> list[str]:
 
 @dataclass(frozen=True)
 class Described:
-    """What a worker found in one file: its header and footprint, or why it is bad."""
+    """What a worker found in one file: its header, footprint and the footprint's HEALPix
+    pixels (None: computed when stored), or why it is bad."""
 
     entry: ManifestEntry
     files: tuple[FileStamp, ...]
     header_json: str | None = None
     corners: np.ndarray | None = None
     reason: str | None = None
+    pixels: np.ndarray | None = field(default=None, repr=False)
 
 
-def describe_entry(entry: ManifestEntry, checksum: bool = False) -> Described:
-    """Read one input's headers (in any process): a :class:`Described`, never an error."""
+def describe_entry(
+    entry: ManifestEntry, checksum: bool = False, nside: int | None = None
+) -> Described:
+    """Read one input's headers (in any process): a :class:`Described`, never an error.
+
+    With ``nside``, the footprint's HEALPix pixels are listed here too, so that a
+    footprint too large for the key
+    (:data:`~cellcoadd.geometry.footprint.MAX_FOOTPRINT_PIXELS`) or degenerate (a pixel
+    scale far too small) makes this file bad, and only this one.
+    """
     stamps: list[FileStamp] = []
     try:
         for path in entry_files(entry):
@@ -357,9 +421,23 @@ def describe_entry(entry: ManifestEntry, checksum: bool = False) -> Described:
         corners = footprint_corners(header)
         if not np.all(np.isfinite(corners)):
             return Described(entry, tuple(stamps), reason="the WCS gives no sky footprint")
-        return Described(entry, tuple(stamps), header_to_json(header), corners)
+        pixels = None if nside is None else healpix_pixels(nside, corners)
+    except GeometryError as err:  # the footprint: say at which pixel scale
+        return Described(entry, tuple(stamps), reason=f"{err}{_pixel_scale_note(header)}")
     except (CellCoaddError, OSError, ValueError, KeyError, TypeError) as err:
         return Described(entry, tuple(stamps), reason=f"{type(err).__name__}: {err}")
+    return Described(entry, tuple(stamps), header_to_json(header), corners, pixels=pixels)
+
+
+def _pixel_scale_note(header: ExposureHeader) -> str:
+    """`` (the WCS gives S arcsec/pixel)`` at the centre of the valid box, or nothing."""
+    box = header.valid_box
+    centre = ((box.x_start + box.x_stop - 1) / 2, (box.y_start + box.y_stop - 1) / 2)
+    try:
+        scale = float(np.sqrt(pixel_area(header.wcs, *centre)))
+    except (ValueError, ArithmeticError):
+        return ""
+    return f" (the WCS gives {scale:.3g} arcsec/pixel)"
 
 
 # -- the index ---------------------------------------------------------------------------
@@ -406,22 +484,34 @@ class ExposureIndex:
     readonly : bool
         Open for queries only (what workers do); the file must exist.
     nside : int
-        HEALPix resolution of a new index (a power of 2); an existing index keeps its own.
+        HEALPix resolution of a new index (a power of 2 up to
+        :data:`~cellcoadd.geometry.footprint.MAX_NSIDE`); an existing index keeps its own.
 
     Raises
     ------
+    CellCoaddRangeError
+        For an ``nside`` that is not a power of 2 in the allowed range (before any file
+        is opened).
     CellCoaddFormatError
-        When the file is not an index of this schema version, or does not exist (readonly).
+        When the file is not an index of this schema version, or does not exist (readonly),
+        or its stored nside is out of range.
     """
 
     def __init__(
         self, path: str | os.PathLike[str], *, readonly: bool = False, nside: int = DEFAULT_NSIDE
     ):
         self.path = os.fspath(path)
+        if not readonly:
+            check_nside(nside)  # before any file is touched
         if readonly and not os.path.lexists(self.path):
             raise CellCoaddFormatError(self.path, "no such exposure index")
         # a FIFO, a device or a directory is refused before SQLite opens it
-        resolved = (gate_read if readonly else gate_write)(self.path, what="exposure index")
+        # a writer never follows a link (SQLite would create or change its target)
+        resolved = (
+            gate_read(self.path, what="exposure index")
+            if readonly
+            else gate_create(self.path, what="exposure index", companions=("-journal", "-wal"))
+        )
         self._db = open_own_database(
             resolved,
             application_id=APPLICATION_ID,
@@ -436,13 +526,11 @@ class ExposureIndex:
             self._db.execute("PRAGMA foreign_keys = ON")
             rows = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
             if not rows and not readonly:
-                if nside <= 0 or nside & (nside - 1):
-                    raise CellCoaddFormatError(self.path, f"nside {nside} is not a power of 2")
                 with self._db:
                     self._db.execute("INSERT INTO meta VALUES ('nside', ?)", (str(nside),))
                 rows = {"nside": str(nside)}
-            self.nside = int(rows["nside"])
-        except (sqlite3.DatabaseError, KeyError, ValueError) as err:
+            self.nside = check_nside(int(rows["nside"]))
+        except (sqlite3.DatabaseError, KeyError, ValueError, TypeError) as err:
             self._db.close()
             raise CellCoaddFormatError(self.path, f"damaged exposure index ({err})") from None
 
@@ -473,7 +561,8 @@ class ExposureIndex:
             Inputs with absolute paths (:func:`absolute_entry`).
         checksum : bool
             Also compare (and store) the SHA-256 of every file: finds changes that keep
-            size and mtime, at the cost of reading every byte.
+            size and mtime, at the cost of reading every byte; and decode every stored
+            row (a row damaged with its checksum made to agree is read again).
         workers : int
             Processes reading headers.
         progress : callable, optional
@@ -481,14 +570,21 @@ class ExposureIndex:
 
         Every row of the index (not only ``entries``) whose file is gone is marked
         ``vanished``; it returns to ``ok`` when the file comes back and is indexed again.
+        A row that disagrees with its checksum, or whose header disagrees with the
+        header's SHA-256, is read again from its file. A file with the (visit, detector)
+        of a file already indexed is bad (the first stays).
         """
         start = time.perf_counter()
         result = IndexUpdate()
+        # a damaged row is read again (or marked vanished), never fatal
+        columns = ", ".join(("id", "checksum", "header", *CHECKED_FIELDS))
         known = {
-            path: (status, json.loads(files), stored)
-            for path, status, files, stored in self._db.execute(
-                "SELECT path, status, files, entry FROM exposures"
+            row["path"]: (
+                row["status"] if row["status"] != "ok" or _row_intact(row, checksum) else "damaged",
+                _decoded_files(row["files"]),
+                row["entry"],
             )
+            for row in self._db.execute(f"SELECT {columns} FROM exposures")
         }
         todo: list[ManifestEntry] = []
         seen: set[str] = set()
@@ -508,17 +604,8 @@ class ExposureIndex:
                 todo.append(entry)
         described = self._describe_all(todo, checksum, workers, progress)
         with self._db:
-            for item in described:
-                path = item.entry.path
-                if item.reason is not None:
-                    result.bad.append((path, item.reason))
-                elif path in known:
-                    result.updated.append(path)
-                else:
-                    result.added.append(path)
-                self.store(item)
             for path, (status, files, _) in known.items():
-                if path not in seen and status != "vanished" and not _exists(files):
+                if path not in seen and status != "vanished" and not _exists(files, path):
                     self._db.execute(
                         "UPDATE exposures SET status = 'vanished', reason = ? WHERE path = ?",
                         ("the file vanished", path),
@@ -529,6 +616,17 @@ class ExposureIndex:
                         (path,),
                     )
                     result.vanished.append(path)
+            identities = _Identities(self._db)
+            for item in described:
+                item = identities.claim(item)
+                path = item.entry.path
+                if item.reason is not None:
+                    result.bad.append((path, item.reason))
+                elif path in known:
+                    result.updated.append(path)
+                else:
+                    result.added.append(path)
+                self.store(item)
         result.seconds = time.perf_counter() - start
         return result
 
@@ -540,13 +638,17 @@ class ExposureIndex:
         progress: Callable[[Iterable[Any], int], Iterable[Any]] | None,
     ) -> Iterator[Described]:
         wrap = progress or (lambda items, total: items)
+        nside = self.nside
         if workers <= 1 or len(entries) < 2:
-            yield from wrap((describe_entry(e, checksum) for e in entries), len(entries))
+            described = (describe_entry(e, checksum, nside) for e in entries)
+            yield from wrap(described, len(entries))
             return
         chunk = max(1, min(64, len(entries) // (4 * workers)))
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            results = pool.map(describe_entry, entries, [checksum] * len(entries), chunksize=chunk)
-            yield from wrap(results, len(entries))
+            n = len(entries)
+            options = ([checksum] * n, [nside] * n)
+            results = pool.map(describe_entry, entries, *options, chunksize=chunk)
+            yield from wrap(results, n)
 
     def store(self, item: Described) -> None:
         """Insert or replace the row of ``item`` and its footprint pixels; the caller
@@ -585,7 +687,9 @@ class ExposureIndex:
                 header=item.header_json,
                 header_sha256=json_sha256(item.header_json),
             )
-            pixels = healpix_pixels(self.nside, item.corners)
+            pixels = (
+                healpix_pixels(self.nside, item.corners) if item.pixels is None else item.pixels
+            )
         values["n_pixels"] = len(pixels)
         values["checksum"] = row_checksum({name: values.get(name) for name in CHECKED_FIELDS})
         self._db.execute("DELETE FROM exposures WHERE path = ?", (entry.path,))
@@ -659,42 +763,48 @@ class ExposureIndex:
         """The row as an :class:`IndexedExposure`, after checking it against its checksum
         (and its header against the header's SHA-256, when read)."""
         damaged = row_checksum(row) != row["checksum"]
-        if row["header"] is not None and json_sha256(row["header"]) != row["header_sha256"]:
+        header = row["header"]
+        if header is not None and (
+            not isinstance(header, str) or json_sha256(header) != row["header_sha256"]
+        ):
             damaged = True
         if damaged:
             fields = self._differing_fields(row)
             raise IndexRowError(
-                f"{row['path']}: row {row['id']} of the exposure index {self.path} does not "
+                f"{row['path']!s}: row {row['id']} of the exposure index {self.path} does not "
                 f"match its checksum (stored {', '.join(fields)} "
                 f"{'differ' if len(fields) > 1 else 'differs'} from the file or was damaged): "
                 "run `cellcoadd index` again",
-                path=row["path"],
+                path=str(row["path"]),
                 row=int(row["id"]),
                 fields=fields,
             )
-        try:
-            return IndexedExposure(
-                int(row["id"]), row["path"], int(row["visit"]), int(row["detector"]),
-                str(row["band"]), row["checksum"], row["entry"], row["corners"], row["files"],
-                row["header"],
-            )  # fmt: skip
-        except (TypeError, ValueError) as err:
+        # stored values of another type (a row forged with its checksum) are named too
+        wrong = tuple(name for name, kind in _ROW_TYPES.items() if type(row[name]) is not kind)
+        if wrong:
             raise IndexRowError(
-                f"{row['path']}: row {row['id']} of the exposure index {self.path} is "
-                f"unreadable ({err}): run `cellcoadd index` again",
-                path=row["path"],
+                f"{row['path']!s}: row {row['id']} of the exposure index {self.path}: its "
+                f"{', '.join(wrong)} column{'s are' if len(wrong) > 1 else ' is'} not of the "
+                "stored type: run `cellcoadd index` again",
+                path=str(row["path"]),
                 row=int(row["id"]),
-            ) from None
+                fields=wrong,
+            )
+        return IndexedExposure(
+            int(row["id"]), row["path"], row["visit"], row["detector"], row["band"],
+            row["checksum"], row["entry"], row["corners"], row["files"], row["header"],
+            self.path,
+        )  # fmt: skip
 
     def _differing_fields(self, row: sqlite3.Row) -> tuple[str, ...]:
         """Which stored fields of ``row`` differ from the file described now (the
         checksum itself when none does)."""
         try:
             entry = ManifestEntry.model_validate_json(row["entry"])
-        except ValueError:
+        except (TypeError, ValueError):
             return ("entry",)
-        fresh = describe_entry(entry.model_copy(update={"trust_psf": False}))
-        if fresh.reason is not None or fresh.header_json is None or fresh.corners is None:
+        fresh = describe_entry(entry.model_copy(update={"trust_psf": False}), nside=self.nside)
+        if fresh.reason is not None or fresh.header_json is None or fresh.pixels is None:
             return ("header",)
         stored_header = row["header"]
         if stored_header is None:
@@ -710,19 +820,21 @@ class ExposureIndex:
             "ny": now["shape"][0],
             "nx": now["shape"][1],
             "valid_box": json.dumps(now["valid_box"]),
-            "corners": json.dumps(fresh.corners.tolist()),
-            "n_pixels": len(healpix_pixels(self.nside, fresh.corners)),
+            "corners": json.dumps(np.asarray(fresh.corners).tolist()),
+            "n_pixels": len(fresh.pixels),
             "path": entry.path,
         }
         fields = [name for name, value in expected.items() if row[name] != value]
         try:
             stored = json.loads(stored_header or "{}")
-        except ValueError:
+        except (TypeError, ValueError):
+            stored = {}
+        if not isinstance(stored, dict):
             stored = {}
         fields += [f"header.{name}" for name in now if stored.get(name) != now[name]]
-        if json_sha256(stored_header) != row["header_sha256"] and not any(
-            f.startswith("header.") for f in fields
-        ):
+        if (
+            not isinstance(stored_header, str) or json_sha256(stored_header) != row["header_sha256"]
+        ) and not any(f.startswith("header.") for f in fields):
             fields.append("header")
         return tuple(fields) or ("checksum",)
 
@@ -852,9 +964,55 @@ class ExposureIndex:
 #: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
 _CHUNK = 900
 
+#: The type each column an :class:`IndexedExposure` takes has in a row as stored.
+_ROW_TYPES: dict[str, type] = {
+    "path": str, "visit": int, "detector": int, "band": str, "checksum": str, "entry": str,
+    "corners": str, "files": str,
+}  # fmt: skip
 
-def _stale(files: list[list[Any]], entry: ManifestEntry, checksum: bool) -> bool:
+
+def _row_intact(row: sqlite3.Row, deep: bool) -> bool:
+    """Whether a stored row agrees with its checksum and its header with the header's
+    SHA-256 (~10 us); ``deep``: and every JSON column decodes as its kind (~50 us)."""
+    header = row["header"]
+    if (
+        row_checksum(row) != row["checksum"]
+        or not isinstance(header, str)
+        or json_sha256(header) != row["header_sha256"]
+    ):
+        return False
+    if deep:
+        try:
+            header_from_json(header)
+            ManifestEntry.model_validate_json(row["entry"])
+            corners = np.asarray(json.loads(row["corners"]), dtype=float)
+        except (CellCoaddError, TypeError, ValueError, KeyError, IndexError, OverflowError):
+            return False
+        return corners.shape == (4, 2) and _decoded_files(row["files"]) is not None
+    return True
+
+
+def _decoded_files(text: Any) -> list[list[Any]] | None:
+    """The ``files`` column of a row (``[path, size, mtime_ns, sha256]`` each), or None
+    when it does not decode as that (a damaged row: read its file again)."""
+    try:
+        files = json.loads(text)
+    except (TypeError, ValueError):
+        return None
+    if not isinstance(files, list) or not all(
+        isinstance(f, list) and len(f) == 4 and isinstance(f[0], str)
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in f[1:3])
+        and (f[3] is None or isinstance(f[3], str))
+        for f in files
+    ):  # fmt: skip
+        return None
+    return files
+
+
+def _stale(files: list[list[Any]] | None, entry: ManifestEntry, checksum: bool) -> bool:
     """Whether an indexed input must be read again: other files, or a file changed."""
+    if files is None:
+        return True
     if [f[0] for f in files] != entry_files(entry):
         return True
     if checksum and any(f[3] is None for f in files):
@@ -862,5 +1020,41 @@ def _stale(files: list[list[Any]], entry: ManifestEntry, checksum: bool) -> bool
     return any(FileStamp(p, s, m, h).changed(checksum) is not None for p, s, m, h in files)
 
 
-def _exists(files: list[list[Any]]) -> bool:
-    return bool(files) and os.path.exists(files[0][0])
+def _exists(files: list[list[Any]] | None, path: Any) -> bool:
+    first = files[0][0] if files else path
+    return isinstance(first, str) and os.path.exists(first)
+
+
+class _Identities:
+    """Which file holds each (visit, detector) among the usable rows, during an update:
+    a second file with the identity of another is refused (bad), the first stays."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._owner: dict[tuple[Any, Any], str] = {}
+        self._key: dict[str, tuple[Any, Any]] = {}
+        for path, visit, detector in db.execute(
+            "SELECT path, visit, detector FROM exposures WHERE status = 'ok' ORDER BY id"
+        ):
+            self._owner.setdefault((visit, detector), path)
+            self._key[path] = (visit, detector)
+
+    def claim(self, item: Described) -> Described:
+        """``item``, or ``item`` made bad when another file holds its identity."""
+        path = item.entry.path
+        old = self._key.pop(path, None)
+        if old is not None and self._owner.get(old) == path:
+            del self._owner[old]  # its row is replaced below
+        if item.reason is not None or item.header_json is None:
+            return item
+        header = json.loads(item.header_json)
+        key = (header["visit"], header["detector"])
+        other = self._owner.get(key)
+        if other is not None and other != path:
+            reason = (
+                f"(visit={key[0]}, detector={key[1]}) is already indexed from {other}: two "
+                "files cannot be one exposure"
+            )
+            return Described(item.entry, item.files, reason=reason)
+        self._owner[key] = path
+        self._key[path] = key
+        return item

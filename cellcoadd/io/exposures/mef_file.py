@@ -15,13 +15,14 @@ import numpy as np
 from cellcoadd.errors import CellCoaddFormatError
 from cellcoadd.geometry.box import Box
 from cellcoadd.io._files.path_gate import gate_read
+from cellcoadd.io._files.read_checks import MAX_PLANE_PIXELS, check_declared_plane, header_cards
 from cellcoadd.io._fits.headers import read_header
 from cellcoadd.io._fits.paths import FITS_MAGIC, starts_like_fits
 from cellcoadd.io.exposures.mef_layout import HduRef
 
 #: Most pixels a plane of a survey exposure file may declare (8192 x 8192; an LSST
 #: detector is 4072 x 4000, a DECam CCD 4096 x 2048).
-MAX_DETECTOR_PIXELS = 8192 * 8192
+MAX_DETECTOR_PIXELS = MAX_PLANE_PIXELS
 #: Most bytes a plane may declare per byte it stores (compression ratio; lossless
 #: compression of sky images stays far below it, a constant plane reaches ~1000).
 MAX_INFLATION = 1100
@@ -29,43 +30,94 @@ MAX_INFLATION = 1100
 #: the whole inflated file in memory (an LSST or DECam CCD file is 0.1-0.3 GB).
 MAX_GZIP_BYTES = 2 << 30
 _GZIP_MAGIC = b"\x1f\x8b"
+#: FITS block size (bytes); headers are whole blocks of 36 cards.
+_BLOCK = 2880
+#: Most header blocks an HDU of a gzip stream may have before ``END`` (~36,000 cards).
+_MAX_HEADER_BLOCKS = 1000
 
 
 def check_gzip_stream(path: str, resolved: str) -> int:
     """The inflated size in bytes of a gzip-compressed FITS file; refuses one that is not a
-    FITS file or inflates too far.
+    FITS file, declares a plane too large, or inflates too far.
 
     The stream is inflated once, 1 MiB at a time (memory bounded), before CFITSIO inflates
     it whole into memory: at most :data:`MAX_INFLATION` times the compressed size and
-    :data:`MAX_GZIP_BYTES` bytes.
+    :data:`MAX_GZIP_BYTES` bytes. Each HDU's header is checked as it comes out of the
+    stream, before its data is inflated: an image (plain, or tile-compressed:
+    ``ZNAXISn``) of more than :data:`~cellcoadd.io._files.read_checks.MAX_PLANE_PIXELS`
+    pixels is refused at once.
 
     Raises
     ------
     CellCoaddFormatError
-        Naming ``path``: a damaged stream, one that does not hold a FITS file, or one that
-        inflates beyond the bound.
+        Naming ``path``: a damaged stream, one that does not hold a FITS file, an HDU that
+        declares too large an image (names the HDU, its size and the limit), or a stream
+        that inflates beyond the bound.
     """
     limit = min(MAX_INFLATION * os.path.getsize(resolved), MAX_GZIP_BYTES)
     total = 0
+
+    def read(stream: Any, size: int) -> bytes:
+        nonlocal total
+        chunk = stream.read(size)
+        total += len(chunk)
+        if total > limit:
+            raise CellCoaddFormatError(
+                path,
+                f"its gzip stream inflates beyond {limit} bytes (at most "
+                f"{MAX_INFLATION}:1 and {MAX_GZIP_BYTES} bytes; forged?)",
+            )
+        return bytes(chunk)
+
     try:
         with gzip.open(resolved, "rb") as stream:
-            first = stream.read(len(FITS_MAGIC))
-            if first != FITS_MAGIC:
+            first = read(stream, _BLOCK)
+            if not first.startswith(FITS_MAGIC):
                 raise CellCoaddFormatError(
                     path, "not a FITS file (its gzip stream does not start with SIMPLE)"
                 )
-            total = len(first)
-            while chunk := stream.read(1 << 20):
-                total += len(chunk)
-                if total > limit:
-                    raise CellCoaddFormatError(
-                        path,
-                        f"its gzip stream inflates beyond {limit} bytes (at most "
-                        f"{MAX_INFLATION}:1 and {MAX_GZIP_BYTES} bytes; forged?)",
-                    )
+            header, hdu = first, 0
+            while header:
+                # the whole header first (bounded), then its declared data, skipped
+                while b"END" + b" " * 77 not in _cards_of(header):
+                    block = read(stream, _BLOCK)
+                    if len(block) < _BLOCK or len(header) >= _MAX_HEADER_BLOCKS * _BLOCK:
+                        header = b""  # truncated or endless: CFITSIO refuses it later
+                        break
+                    header += block
+                if not header:
+                    break
+                cards = header_cards(header)
+                check_declared_plane(path, hdu, cards)
+                remaining = _data_blocks(cards) * _BLOCK
+                while remaining > 0 and (chunk := read(stream, min(remaining, 1 << 20))):
+                    remaining -= len(chunk)
+                header, hdu = read(stream, _BLOCK), hdu + 1
+            while read(stream, 1 << 20):
+                pass  # bytes after the last HDU still count against the bound
     except (OSError, EOFError, zlib.error) as err:
         raise CellCoaddFormatError(path, f"a damaged gzip stream ({err})") from None
     return total
+
+
+def _cards_of(header: bytes) -> list[bytes]:
+    return [header[i : i + 80] for i in range(0, len(header), 80)]
+
+
+def _data_blocks(cards: dict[str, str]) -> int:
+    """FITS blocks of the data unit an HDU's header declares (``|BITPIX| / 8 * GCOUNT *
+    (PCOUNT + NAXIS1 * ... * NAXISn)`` bytes, whole blocks); 0 for a header that does not
+    say (CFITSIO refuses it later)."""
+    try:
+        naxis = int(cards.get("NAXIS", "0"))
+        size = 1 if naxis > 0 else 0
+        for axis in range(1, min(naxis, 999) + 1):
+            size *= max(int(cards.get(f"NAXIS{axis}", "0")), 0)
+        size += max(int(cards.get("PCOUNT", "0")), 0)
+        size *= max(int(cards.get("GCOUNT", "1")), 1) * abs(int(cards.get("BITPIX", "8"))) // 8
+    except ValueError:
+        return 0
+    return -(-size // _BLOCK)
 
 
 class MefFile:

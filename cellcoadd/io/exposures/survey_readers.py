@@ -322,7 +322,7 @@ class MefExposureFile(ExposureSource):
                     return int(value)
         hdus = [headers.label(i) for i, _ in searched]
         raise CellCoaddFormatError(
-            self.path, f"no {what} keyword {list(keys)} in HDUs {hdus}: pass {what}="
+            self.path, f"no {what} keyword {list(keys)} in HDUs {hdus}: {_give(what)}"
         )
 
     def _band(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> str:
@@ -341,7 +341,9 @@ class MefExposureFile(ExposureSource):
                     return value.split()[0].split("_")[0]
         keys = [*self.layout.band_keys, *([filter_key] if filter_key else [])]
         hdus = [headers.label(i) for i, _ in searched]
-        raise CellCoaddFormatError(self.path, f"no band keyword {keys} in HDUs {hdus}: pass band=")
+        raise CellCoaddFormatError(
+            self.path, f"no band keyword {keys} in HDUs {hdus}: {_give('band')}"
+        )
 
     def _zero_point(self, headers: MefFile, searched: list[tuple[int, fitsio.FITSHDR]]) -> float:
         for key in self.layout.zero_point_keys:
@@ -368,7 +370,8 @@ class MefExposureFile(ExposureSource):
         keys = [key.keyword for key in self.layout.zero_point_keys]
         hdus = [headers.label(i) for i, _ in searched]
         raise CellCoaddFormatError(
-            self.path, f"no zero point: no usable keyword {keys} in HDUs {hdus}; pass zero_point="
+            self.path,
+            f"no zero point: no usable keyword {keys} in HDUs {hdus}; {_give('zero_point')}",
         )
 
     def _mask_bits(self, headers: MefFile, mask: int) -> MaskBits:
@@ -412,6 +415,14 @@ class MefExposureFile(ExposureSource):
         if dims != shape:
             raise headers.fail(index, f"the background has shape {dims}, the image {shape}")
         return index
+
+
+def _give(field: str) -> str:
+    """How to give a value the file lacks: the manifest field a user writes first."""
+    return (
+        f"set `{field} = ...` in the file's manifest entry (manifest.toml), or {field}= "
+        "when reading it in Python"
+    )
 
 
 def read_mef_exposure(
