@@ -215,7 +215,8 @@ def test_command_line_flag_reaches_the_settings():
     from cellcoadd.cli.main import cli
 
     args = ["validate-shear", "--method", "bfd", "--n-objects", "2", "--bfd-templates", "2"]
+    args += ["--snr", "20"]  # independent templates: S/N up to 50
     for flag, expected in (([], False), (["--bfd-mirror"], True)):
         result = CliRunner().invoke(cli, [*args, *flag, "--json", "--quiet"])
         assert result.exit_code == 0, result.output
-        assert json.loads(result.output)["settings"]["bfd_mirror"] is expected
+        assert json.loads(result.stdout)["settings"]["bfd_mirror"] is expected

@@ -12,7 +12,10 @@ from cellcoadd.pipelines.validation.bias_precision import (
     REFERENCE_SHEAR,
     SNR_CUT,
     TARGET_M_ERR,
+    ForecastRow,
     error_scales,
+    forecast,
+    forecast_scale,
     pairs_needed,
 )
 
@@ -96,17 +99,17 @@ def _finite_or_null(value: object) -> object:
 @click.option(
     "--bfd-templates",
     type=click.IntRange(min=1),
-    default=100,
-    show_default=True,
-    help="Deep templates of the BFD prior (--method bfd).",
+    default=None,
+    help="Independent deep templates of the BFD prior (--method bfd). Default: 1600 at "
+    "S/N up to 50 (fewer leave m1 biased: 100 gave +0.20); refused above S/N 50.",
 )
 @click.option(
     "--bfd-template-sample",
     type=click.Choice(["independent", "targets"]),
-    default="independent",
-    show_default=True,
-    help="BFD templates from an independent sample, or the targets themselves unsheared "
-    "(the high-S/N check, with --no-rotated-partners).",
+    default=None,
+    help="BFD templates from an independent sample, or the targets themselves unsheared. "
+    "Default from --snr: the targets above S/N 50 (with no ring partners and --shear "
+    "0.001 unless given), independent ones up to 50.",
 )
 @click.option(
     "--bfd-oversample",
@@ -188,14 +191,16 @@ def _finite_or_null(value: object) -> object:
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 @quiet_option
+@click.pass_context
 def validate_shear(
+    ctx: click.Context,
     method: str,
     mode: str,
     shape: str,
     wmom_fwhm: float,
     unrotated: bool,
-    bfd_templates: int,
-    bfd_template_sample: str,
+    bfd_templates: int | None,
+    bfd_template_sample: str | None,
     bfd_oversample: int,
     bfd_mirror: bool,
     shear: float,
@@ -218,16 +223,20 @@ def validate_shear(
     pairs with g1 = 0.02 (--shear; objects 2k+1 are 90-degree-rotated partners of objects 2k),
     coadds each object's epochs into one cell with the cellcoadd builder, runs
     metacalibration with the cell's noise realization (or BFD: moments with the
-    covariance from the noise realization, a prior from 100 deep templates) and prints m1, c1,
-    c2 (jackknife errors), the objects used after the paper's cuts and the CPU time,
-    beside the paper's value. The multi-epoch mode is the paper's reference: metacal on
-    each epoch (own PSF, one common reconvolution PSF, own noise correction) with one
-    joint shape, or BFD moments summed over the epochs (metacal: about 4 times the CPU
-    of coadd mode per pair). The defaults (100 pairs at S/N 10000, about a minute of
-    CPU) measure the coadd's own bias to about +-2e-4. The error on m1 is about
-    1.5e-3 / sqrt(N) at S/N 10000 and 1.2-2.2 / sqrt(N) at S/N 10-50; at the paper's noise
-    most objects fail the S/N cut and 200 pairs give +-10 (docs/validation.md). The
-    output ends with the number of pairs that would reach +-3e-4.
+    covariance from the noise realization and a template prior) and prints m1, c1,
+    c2 (jackknife errors, ring partners kept together), the objects used after the paper's
+    cuts and the CPU time, beside the paper's value. The multi-epoch mode is the paper's
+    reference: metacal on each epoch (own PSF, one common reconvolution PSF, own noise
+    correction) with one joint shape, or BFD moments summed over the epochs (metacal:
+    about 4 times the CPU of coadd mode per pair). The defaults (100 pairs at S/N 10000,
+    about a minute of CPU) measure the coadd's own bias to about +-2.6e-4.
+
+    Before the run it prints the error to expect from a stored table of measured
+    sigma(m1) x sqrt(N) per method, mode and S/N (at S/N 10000: metacal 2.6e-3 on coadds,
+    1.9e-3 multi-epoch, AnaCal 1.5e-3, BFD 2.3e-3 on coadds and 9.6e-3 multi-epoch at
+    g1 = 0.001; at S/N 10-50: metacal admom 1.7, wmom 0.9, BFD 0.34; at the paper's noise
+    ~100; docs/validation.md); after it, the pairs that would reach +-3e-4 and the pairs
+    and CPU hours of --target-sigma (from the table where it has the row).
 
     \b
     Examples:
@@ -246,10 +255,11 @@ def validate_shear(
           --bfd-template-sample targets --no-rotated-partners
       cellcoadd validate-shear --method anacal --n-objects 40 --snr 10000
 
-    BFD's prior must overlap every target within its noise: with independent templates it
-    is meant for S/N below ~50 (the paper selects 5 < S/N < 50). At S/N 10^4 it needs the
-    targets themselves as templates (--bfd-template-sample targets --no-rotated-partners)
-    and a small shear (--shear 0.001: no third-order terms).
+    BFD's prior must overlap every target within its noise, so its settings follow
+    --snr unless given: above S/N 50 (the default 10000) the targets themselves serve as
+    templates, with no ring partners and --shear 0.001 (no third-order terms), and
+    independent templates are refused; up to S/N 50 (the paper selects 5 < S/N < 50),
+    1600 independent templates (100 left m1 biased by +0.20).
     """
     from cellcoadd.errors import ConfigError
     from cellcoadd.pipelines.validation.bias_table import format_bias_table, format_cut_comparison
@@ -274,10 +284,29 @@ def validate_shear(
             raise click.ClickException(str(exc)) from exc
     if shear == 0.0:
         raise click.BadParameter("the input shear must not be 0", param_hint="--shear")
+    rotated: bool | None = False if unrotated else None
+    if method == "bfd":
+        from cellcoadd.pipelines.validation.bias_presets import choose_bfd
+
+        given = ctx.get_parameter_source("shear") not in _DEFAULT_SOURCES
+        try:
+            bfd = choose_bfd(
+                parse_snr(snr_text),
+                template_sample=bfd_template_sample,  # type: ignore[arg-type]
+                templates=bfd_templates,
+                rotated_partners=rotated,
+                shear=shear if given else None,
+            )
+        except ConfigError as exc:
+            raise click.UsageError(str(exc)) from None
+        bfd_template_sample, bfd_templates = bfd.template_sample, bfd.templates
+        rotated, shear = bfd.rotated_partners, bfd.shear or shear
+        if bfd.note and (not quiet or bfd.note.startswith("warning")):
+            click.echo(bfd.note, err=True)
     if not quiet and not as_json:
         click.echo(
             f"{n_objects} +g/-g pairs at S/N {snr_text}, g1 = {shear:g}: "
-            f"{expected_precision(snr_text, n_objects, shear)}",
+            f"{expected_precision(snr_text, n_objects, shear, method, mode, shape)}",
             err=True,
         )
     result = run_validation(
@@ -294,7 +323,7 @@ def validate_shear(
         method=method,  # type: ignore[arg-type]
         shape=shape,  # type: ignore[arg-type]
         wmom_fwhm=wmom_fwhm,
-        rotated_partners=not unrotated,
+        rotated_partners=rotated,
         bfd_templates=bfd_templates,
         bfd_template_sample=bfd_template_sample,  # type: ignore[arg-type]
         bfd_oversample=bfd_oversample,
@@ -314,35 +343,94 @@ def validate_shear(
             f"({result['cpu_seconds'] / result['n_objects']:.2f} s per pair)"
         )
         click.echo(precision_advice(result["m1_err"], result["n_objects"]))
+        row = forecast(method, mode, _lowest_snr(snr_text), shape)
         click.echo(
-            target_cost(result["m1_err"], result["n_objects"], result["cpu_seconds"], target_sigma)
+            target_cost(
+                result["m1_err"],
+                result["n_objects"],
+                result["cpu_seconds"],
+                target_sigma,
+                None if row is None else (row, shear),
+            )  # fmt: skip
         )
         if compare_cuts:
             click.echo(format_cut_comparison(result))
 
 
-def target_cost(m1_err: float, n_objects: int, cpu_seconds: float, target: float) -> str:
+#: Where a parameter's value came from when the user did not give it.
+_DEFAULT_SOURCES = (
+    click.core.ParameterSource.DEFAULT,
+    click.core.ParameterSource.DEFAULT_MAP,
+    None,
+)
+
+
+def _lowest_snr(snr_text: str | None) -> float | None:
+    """The lowest S/N of ``--snr`` (None: the paper's noise)."""
+    snr = parse_snr(snr_text)
+    return None if snr is None else snr if isinstance(snr, float) else snr[0]
+
+
+def target_cost(
+    m1_err: float,
+    n_objects: int,
+    cpu_seconds: float,
+    target: float,
+    stored: tuple[ForecastRow, float] | None = None,
+) -> str:
     """The pairs and CPU hours a run of the same settings needs for ``sigma(m1) = target``
-    (the error falls as 1/sqrt(N), the CPU grows as N)."""
-    if not (math.isfinite(m1_err) and m1_err > 0.0 and n_objects > 0):
+    (the error falls as 1/sqrt(N), the CPU grows as N, at this run's CPU per pair).
+
+    ``stored``: the row of the forecast table for the run and its input shear; its
+    measured scale (from runs far longer than most) gives the pairs. Without it, this
+    run's own ``m1_err`` does.
+    """
+    if n_objects <= 0:
+        return f"sigma_m = {target:g}: no estimate (no pairs)"
+    if stored is not None:
+        row, shear = stored
+        needed = (forecast_scale(row, shear) / target) ** 2
+        source = f" (stored sigma(m1) x sqrt(N) = {forecast_scale(row, shear):.2g}: {row.label()})"
+    elif math.isfinite(m1_err) and m1_err > 0.0:
+        needed = n_objects * (m1_err / target) ** 2
+        source = " (this run's error)"
+    else:
         return f"sigma_m = {target:g}: no estimate (no error on m1)"
-    needed = n_objects * (m1_err / target) ** 2
     hours = needed * cpu_seconds / n_objects / 3600.0
-    return f"sigma_m = {target:g} needs ~{needed:.2g} pairs, ~{hours:.3g} CPU hours"
+    return f"sigma_m = {target:g} needs ~{needed:.2g} pairs, ~{hours:.3g} CPU hours{source}"
 
 
-def expected_precision(snr_text: str | None, n_objects: int, shear: float = DEFAULT_SHEAR) -> str:
-    """What error on m1 to expect before the run (the model of
-    :mod:`cellcoadd.pipelines.validation.bias_precision`).
+def expected_precision(
+    snr_text: str | None,
+    n_objects: int,
+    shear: float = DEFAULT_SHEAR,
+    method: str = "metacal",
+    mode: str = "coadd",
+    shape: str = "admom",
+) -> str:
+    """What error on m1 to expect before the run: the stored row of the forecast table
+    (:func:`~cellcoadd.pipelines.validation.bias_precision.forecast`) for the method,
+    mode, S/N and shape, or the generic model of
+    :mod:`cellcoadd.pipelines.validation.bias_precision` where none is stored.
 
-    The numbers are those measured at the input shear ``REFERENCE_SHEAR`` (0.02); with
-    another ``shear`` the part of the error due to pixel noise scales as
-    ``0.02 / |shear|``, which the message says.
+    A row's scale was measured at its own input shear; with another ``shear`` the part
+    of the error due to pixel noise scales as ``row shear / |shear|``, which the message
+    says.
     """
     snr = parse_snr(snr_text)
+    root = math.sqrt(n_objects)
+    row = forecast(method, mode, _lowest_snr(snr_text), shape)
+    if row is not None:
+        scale = forecast_scale(row, shear)
+        note = (
+            "" if shear == row.shear else f" (measured at g1 = {row.shear:g}, x {row.shear:g}/|g|)"
+        )
+        return (
+            f"expect an error on m1 of about {scale / root:.2g}: stored sigma(m1) x sqrt(N) "
+            f"= {scale:.2g} for {row.label()}{note}"
+        )
     reference = REFERENCE_SHEAR
     note = "" if shear == reference else f" at g1 = {reference} (noise: x {reference}/|g|)"
-    root = math.sqrt(n_objects)
     scales = error_scales(None if snr is None else snr if isinstance(snr, float) else snr[0])
     if scales is None:
         return f"low S/N: most objects fail the S/N > {SNR_CUT:g} cut; expect a large error on m1"

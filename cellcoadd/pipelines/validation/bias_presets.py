@@ -25,7 +25,8 @@ keyword arguments of :func:`~cellcoadd.pipelines.validate_shear`:
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 from cellcoadd.errors import ConfigError
 from cellcoadd.pipelines.validation.validation_settings import BFD_OVERSAMPLE, check_method_mode
@@ -51,6 +52,118 @@ HIGH_SNR_PAIRS: dict[str, int] = {
     "anacal-coadd": 150,
     "anacal-single": 150,
 }
+
+
+#: Highest S/N at which BFD's independent templates cover the targets (the paper selects
+#: 5 < S/N < 50; above it no flux selection applies and the targets serve as templates).
+BFD_INDEPENDENT_MAX_SNR = 50.0
+#: Independent BFD templates when none are asked for: at S/N 10-50, 100 templates gave
+#: m1 = +0.20 +- 0.07 (the prior's sampling noise), 400 +0.10 +- 0.05, 1600 +0.008 +-
+#: 0.017, the precision the forecast table states (docs/validation.md).
+BFD_DEFAULT_TEMPLATES = 1600
+
+
+@dataclass(frozen=True)
+class BfdChoice:
+    """BFD settings of a run, chosen from its S/N where not given (:func:`choose_bfd`).
+
+    Attributes
+    ----------
+    template_sample : {"independent", "targets"}
+        Where the templates come from.
+    templates : int
+        Independent templates (ignored with ``"targets"``).
+    rotated_partners : bool
+        Ring partners.
+    shear : float or None
+        Input g1 (None: the default 0.02).
+    note : str
+        What was chosen and why, or a warning about an explicit choice ("" when nothing).
+    """
+
+    template_sample: Literal["independent", "targets"]
+    templates: int
+    rotated_partners: bool
+    shear: float | None
+    note: str
+
+
+def choose_bfd(
+    snr: float | tuple[float, float] | None,
+    *,
+    template_sample: Literal["independent", "targets"] | None = None,
+    templates: int | None = None,
+    rotated_partners: bool | None = None,
+    shear: float | None = None,
+) -> BfdChoice:
+    """The BFD settings for target S/N ``snr``; each argument left None is chosen from it.
+
+    * S/N above :data:`BFD_INDEPENDENT_MAX_SNR` (the default 10^4 of ``validate-shear``):
+      no independent sample covers a near-noiseless target's ~1e-4-wide likelihood (100
+      templates gave ``m1 = -0.40``), so the targets themselves, unsheared, are the
+      templates, without ring partners, at ``g1 = 1e-3`` (the ``high-snr`` preset's BFD
+      rows). Independent templates asked for there are refused.
+    * S/N up to 50 (or the paper's noise): :data:`BFD_DEFAULT_TEMPLATES` independent
+      templates, ring partners; fewer asked for are run with a warning in ``note``.
+    * A range across 50 is refused (neither prior serves all of it).
+
+    Raises
+    ------
+    ConfigError
+        A combination that gives a wrong ``m1``; the message names the flags of
+        ``validate-shear`` that fix it.
+    """
+    lo, hi = (None, None) if snr is None else (snr, snr) if isinstance(snr, float | int) else snr
+    limit = BFD_INDEPENDENT_MAX_SNR
+    if lo is not None and hi is not None and lo <= limit < hi and template_sample != "targets":
+        raise ConfigError(
+            f"BFD: the S/N range {lo:g}-{hi:g} straddles {limit:g}: independent templates "
+            f"cover targets up to S/N {limit:g} only, the targets as templates serve near-"
+            f"noiseless ones; give --snr within 10-{limit:g} (e.g. --snr 10,50) or above it "
+            "(e.g. --snr 10000)",
+            value=snr,
+        )
+    if lo is not None and lo > limit:
+        if template_sample == "independent" or (template_sample is None and templates):
+            raise ConfigError(
+                f"BFD at S/N {lo:g} > {limit:g} cannot use independent templates (an "
+                "independent sample of any practical size cannot cover near-noiseless "
+                "targets: 100 templates gave m1 = -0.40 at S/N 10^4); leave out "
+                "--bfd-template-sample independent and --bfd-templates (the default at this "
+                "S/N is --bfd-template-sample targets --no-rotated-partners --shear 0.001), "
+                f"or lower the S/N (--snr 10,{limit:g})",
+                value=template_sample,
+            )
+        chosen = template_sample is None or rotated_partners is None or shear is None
+        return BfdChoice(
+            template_sample="targets",
+            templates=templates or 100,  # not used: the targets are the templates
+            rotated_partners=False if rotated_partners is None else rotated_partners,
+            shear=BFD_HIGH_SNR_SHEAR if shear is None else shear,
+            note=(
+                f"BFD at S/N {lo:g}: the targets themselves as templates, no ring partners, "
+                f"g1 = {BFD_HIGH_SNR_SHEAR:g} (as --bfd-template-sample targets "
+                "--no-rotated-partners --shear 0.001)"
+                if chosen
+                else ""
+            ),
+        )
+    sample = template_sample or "independent"
+    count = BFD_DEFAULT_TEMPLATES if templates is None else templates
+    note = ""
+    if sample == "independent" and count < BFD_DEFAULT_TEMPLATES:
+        note = (
+            f"warning: {count} BFD templates sample the prior too sparsely at S/N 10-50 "
+            f"(100 gave m1 = +0.20 +- 0.07); the default {BFD_DEFAULT_TEMPLATES} is "
+            "consistent with zero"
+        )
+    return BfdChoice(
+        template_sample=sample,
+        templates=count,
+        rotated_partners=True if rotated_partners is None else rotated_partners,
+        shear=shear,
+        note=note,
+    )
 
 
 def split_row(row: str) -> tuple[str, str]:
@@ -149,17 +262,24 @@ def describe_settings(options: dict[str, Any]) -> str:
         if options["bfd_template_sample"] == "targets":
             parts.append("templates: the targets unsheared (1 rotation)")
         else:
-            parts.append(f"{options.get('bfd_templates', 100)} independent templates x 8 rotations")
+            parts.append(
+                f"{options.get('bfd_templates', BFD_DEFAULT_TEMPLATES)} independent templates "
+                "x 8 rotations"
+            )
         parts.append(f"oversample {options['bfd_oversample']}")
     return ", ".join(parts)
 
 
 __all__ = [
+    "BFD_DEFAULT_TEMPLATES",
     "BFD_HIGH_SNR_SHEAR",
+    "BFD_INDEPENDENT_MAX_SNR",
+    "BfdChoice",
     "DEFAULT_SHEAR",
     "HIGH_SNR",
     "HIGH_SNR_PAIRS",
     "PRESETS",
+    "choose_bfd",
     "describe_settings",
     "row_settings",
     "split_row",

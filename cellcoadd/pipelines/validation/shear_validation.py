@@ -37,6 +37,7 @@ from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, ConfigErr
 from cellcoadd.execution.executors import resolve_executor
 from cellcoadd.pipelines.validation.anacal_validation import summarize_anacal
 from cellcoadd.pipelines.validation.bfd_validation import summarize_bfd
+from cellcoadd.pipelines.validation.bias_presets import choose_bfd
 from cellcoadd.pipelines.validation.bias_table import (
     summary_fields,
 )
@@ -247,9 +248,11 @@ def cut_comparison(
 def _group(settings: ValidationSettings, catalogue: PairCatalogue) -> Groups:
     """Rows removed together by the jackknife: ring partners (objects ``2k, 2k + 1``,
     keyed ``index // 2``), whatever the number of objects (odd: the last alone) and
-    whichever objects were dropped; each row alone without ring partners."""
-    if settings.rotated_partners:
-        return np.asarray(catalogue.index, dtype=np.int64) // 2
+    whichever objects were dropped; each row alone without ring partners, or with a
+    single ring (no jackknife of one block: a 2-object run still gets a rough error)."""
+    keys = np.asarray(catalogue.index, dtype=np.int64) // 2
+    if settings.rotated_partners and len(np.unique(keys)) >= 2:
+        return keys
     return 1
 
 
@@ -274,9 +277,9 @@ def validate_shear(
     method: Method = "metacal",
     shape: Literal["admom", "wmom"] = "admom",
     wmom_fwhm: float = WMOM_FWHM,
-    rotated_partners: bool = True,
-    bfd_templates: int = 100,
-    bfd_template_sample: Literal["independent", "targets"] = "independent",
+    rotated_partners: bool | None = None,
+    bfd_templates: int | None = None,
+    bfd_template_sample: Literal["independent", "targets"] | None = None,
     bfd_oversample: int = BFD_OVERSAMPLE,
     bfd_mirror: bool = False,
     checkpoint: str | os.PathLike[str] | None = None,
@@ -336,14 +339,18 @@ def validate_shear(
         Metacal shape: adaptive moments or fixed-weight Gaussian moments.
     wmom_fwhm : float
         FWHM (arcsec) of the ``wmom`` weight.
-    rotated_partners : bool
+    rotated_partners : bool, optional
         Make objects ``2k + 1`` the 90-degree-rotated partners of objects ``2k`` (the mean
-        intrinsic shape then cancels in ``c`` for an even ``n_objects``).
-    bfd_templates : int
-        Deep templates of the BFD prior.
-    bfd_template_sample : {"independent", "targets"}
+        intrinsic shape then cancels in ``c``). None: yes, but for BFD above S/N 50.
+    bfd_templates : int, optional
+        Independent deep templates of the BFD prior. None: chosen from the S/N
+        (:func:`~cellcoadd.pipelines.validation.bias_presets.choose_bfd`: 1600 at S/N
+        up to 50).
+    bfd_template_sample : {"independent", "targets"}, optional
         BFD templates from an independent sample, or the targets themselves unsheared
         (the high-S/N check; see :class:`~cellcoadd.pipelines.ValidationSettings`).
+        None: chosen from the S/N (the targets above S/N 50, with no ring partners and
+        ``shear`` 1e-3 unless given; independent ones up to 50).
     bfd_oversample : int
         k-space oversampling of the BFD moments (default
         :data:`~cellcoadd.pipelines.validation.validation_settings.BFD_OVERSAMPLE`, 4: accurate
@@ -374,13 +381,25 @@ def validate_shear(
     ------
     ConfigError
         A method and mode that do not run together (AnaCal in multi-epoch mode; the
-        ``"dilate"`` reconvolution PSF in multi-epoch metacal).
+        ``"dilate"`` reconvolution PSF in multi-epoch metacal); BFD settings that give a
+        wrong ``m1`` at this S/N (independent templates above S/N 50; see
+        :func:`~cellcoadd.pipelines.validation.bias_presets.choose_bfd`).
     """
     if n_objects < 2:
         raise CellCoaddRangeError(
             f"a bias needs at least 2 objects, got n_objects = {n_objects}", value=n_objects, low=2
         )
     check_method_mode(method, mode, reconvolution_psf)
+    if method == "bfd":
+        bfd = choose_bfd(
+            snr,
+            template_sample=bfd_template_sample,
+            templates=bfd_templates,
+            rotated_partners=rotated_partners,
+            shear=shear,
+        )
+        bfd_template_sample, bfd_templates = bfd.template_sample, bfd.templates
+        rotated_partners, shear = bfd.rotated_partners, bfd.shear
     sim = sim or SimConfig()
     if shear is not None:
         sim = SimConfig.model_validate({**sim.model_dump(), "shear": (shear, 0.0)})
@@ -395,9 +414,9 @@ def validate_shear(
         method=method,
         shape=shape,
         wmom_fwhm=wmom_fwhm,
-        rotated_partners=rotated_partners,
-        bfd_templates=bfd_templates,
-        bfd_template_sample=bfd_template_sample,
+        rotated_partners=True if rotated_partners is None else rotated_partners,
+        bfd_templates=100 if bfd_templates is None else bfd_templates,
+        bfd_template_sample=bfd_template_sample or "independent",
         bfd_oversample=bfd_oversample,
         bfd_mirror=bfd_mirror,
     )
