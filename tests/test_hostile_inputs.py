@@ -711,3 +711,339 @@ def test_a_trusted_manifest_piff_psf_reads(tmp_path, lsst_file):
     (tmp_path / "m.toml").write_text(entry + "trust_psf = true\n")
     (source,) = sources_from_manifest(read_manifest(tmp_path / "m.toml"), tmp_path)
     assert isinstance(source.psf, PiffPsf)
+
+
+# Round 4: the exposure index and `cellcoadd index` ---------------------------------------
+# Bounds checked before work (nside, pixels per footprint, the planes a gzip stream or a
+# tile-compressed HDU declares); one bad file or row fails only itself (degenerate
+# footprints, duplicate identities, undecodable columns); `cellcoadd index` says so.
+
+
+def _index_entries(paths, **fields):
+    from cellcoadd.io.exposures.index import absolute_entry
+    from cellcoadd.model.manifest import ManifestEntry
+
+    return [absolute_entry(ManifestEntry(path=str(p), **fields), ".") for p in paths]
+
+
+def _index_cli(*args: str):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+
+    return _within_deadline(CliRunner().invoke, cli, ["index", *args])
+
+
+def _index_said(result) -> str:
+    """What `cellcoadd index` printed, and the error it ended with."""
+    return result.output + ("" if result.exception is None else str(result.exception))
+
+
+@pytest.fixture(scope="module")
+def field_files(tmp_path_factory) -> list[Path]:
+    from run_factory import write_field
+
+    return write_field(tmp_path_factory.mktemp("field") / "inputs", n_visits=1)
+
+
+def test_nside_is_bounded_before_any_file_is_touched(tmp_path, field_files):
+    """Issue 39: --nside 67108864 on one exposure: 337 MB of database after 120 s."""
+    import sqlite3
+
+    from cellcoadd.errors import CellCoaddRangeError
+    from cellcoadd.geometry.footprint import MAX_NSIDE
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    db = tmp_path / "inputs.sqlite"
+    result = _index_cli(str(field_files[0]), "--db", str(db), "--nside", "67108864")
+    assert result.exit_code == 2 and f"1<=x<={MAX_NSIDE}" in result.output, result.output
+    result = _index_cli(str(field_files[0]), "--db", str(db), "--nside", "1000")
+    said = _index_said(result)
+    assert result.exit_code == 1 and "power of 2 from 1 to 65536" in said, said
+    with pytest.raises(CellCoaddRangeError, match="67108864 is not a power of 2 from 1 to"):
+        ExposureIndex(db, nside=67108864)
+    assert not db.exists()
+    # an index file that says so itself is refused on opening
+    with ExposureIndex(db) as index:
+        index.update(_index_entries(field_files[:1]))
+    with sqlite3.connect(db) as raw:
+        raw.execute("UPDATE meta SET value = '67108864' WHERE key = 'nside'")
+    raw.close()
+    for readonly in (True, False):
+        with pytest.raises(CellCoaddFormatError, match=r"inputs\.sqlite.*67108864"):
+            ExposureIndex(db, readonly=readonly)
+
+
+def test_a_footprint_over_the_pixel_bound_is_a_bad_file_before_listing(tmp_path, field_files):
+    """A footprint tens of degrees wide (a WCS of the wrong scale) would list millions of
+    HEALPix pixels: refused from its size alone, the other files indexed."""
+    from exposure_factory import make_exposure
+
+    from cellcoadd.errors import GeometryError
+    from cellcoadd.geometry.footprint import MAX_FOOTPRINT_PIXELS, healpix_pixels
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    wide = tmp_path / "wide.fits"
+    write_exposure(make_exposure((10.0, -30.0), shape=(60, 60), pixel_scale=3000.0), wide)
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        update = index.update(_index_entries([field_files[0], wide]))
+        assert update.added == [str(field_files[0])]
+        ((path, reason),) = update.bad
+        assert path == str(wide) and f"more than the {MAX_FOOTPRINT_PIXELS}" in reason, reason
+        assert "nside 512" in reason and index.stats()["ok"] == 1
+    whole_sky = np.array([[0.0, -80.0], [120.0, -80.0], [240.0, -80.0]])
+    with pytest.raises(GeometryError, match="HEALPix pixels at nside 65536"):
+        healpix_pixels(65536, whole_sky)  # refused at once: 3e10 pixels not listed
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_degenerate_footprint_is_one_bad_file(tmp_path, field_files, workers):
+    """Issue 39: an exposure at 1e-7 arcsec/px aborted the whole update with 'Polygon has
+    degenerate corner.' and lost the good file of the same update."""
+    from exposure_factory import make_exposure
+
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    tiny = tmp_path / "tiny.fits"
+    write_exposure(make_exposure((10.0, -30.0), shape=(50, 50), pixel_scale=1e-7), tiny)
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        update = index.update(_index_entries([tiny, *field_files[:2]]), workers=workers)
+        assert sorted(update.added) == sorted(map(str, field_files[:2]))
+        ((path, reason),) = update.bad
+        assert path == str(tiny) and "degenerate footprint" in reason, reason
+        assert "the WCS gives 9.99e-08 arcsec/pixel" in reason, reason
+        assert index.stats()["ok"] == 2
+
+
+def _gzip_declaring(path: Path, naxis1: int, naxis2: int, zeros_mb: int) -> Path:
+    """A gzip stream of a FITS primary HDU declaring an ``naxis1 x naxis2`` float32 image,
+    then ``zeros_mb`` MiB of zeros (a few hundred kB on disk)."""
+    cards = [
+        "SIMPLE  =                    T", "BITPIX  =                  -32",
+        "NAXIS   =                    2", f"NAXIS1  = {naxis1:>20}", f"NAXIS2  = {naxis2:>20}",
+        "END",
+    ]  # fmt: skip
+    with gzip.open(path, "wb", compresslevel=1) as stream:
+        stream.write(b"".join(f"{card:<80}".encode() for card in cards).ljust(2880))
+        for _ in range(zeros_mb):
+            stream.write(bytes(1 << 20))
+    return path
+
+
+def test_a_gzip_stream_declaring_a_huge_plane_is_refused_from_its_header(
+    tmp_path, psfex_path, lsst_file
+):
+    """Issue 39: a 1.6 MB gzip .fits.fz declaring 20000 x 20000 cost 1.5 GB and 20 s per
+    describing process before the refusal: the header is checked as it leaves the stream,
+    before the rest is inflated (by us, or by CFITSIO into memory)."""
+    import resource
+
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    forged = _gzip_declaring(tmp_path / "visit.fits.fz", 20000, 20000, zeros_mb=256)
+    assert forged.stat().st_size < 2 << 20
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    psf = GalSimPsf(galsim.Gaussian(sigma=0.4))
+    error = _refused(read_lsst_exposure, forged, psf, zero_point=30.0, match="20000 x 20000")
+    assert "visit.fits.fz" in str(error) and "HDU 0" in str(error)
+    assert "(400000000 pixels), more than the 67108864 accepted" in str(error)
+    good = tmp_path / "good.fits"
+    shutil.copy(lsst_file, good)
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        entries = _index_entries([forged, good], layout="lsst", psf=str(psfex_path))
+        update = index.update([e.model_copy(update={"zero_point": 30.0}) for e in entries])
+        assert update.added == [str(good)]
+        ((path, reason),) = update.bad
+        assert path == str(forged) and "declares a 20000 x 20000 image" in reason, reason
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mb < 128, grown_mb  # inflating the stream whole: > 256 MB
+
+
+def test_a_tile_compressed_plane_over_the_bound_is_refused_in_cellcoadd_files(
+    tmp_path, field_files
+):
+    """The same bound for cellcoadd's own exposure files: a tile-compressed IMAGE
+    declaring 20000 x 20000 (1000:1 of zeros passes the ratio check) is refused from its
+    header, by the reader and by the index (where only headers are read)."""
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    small = tmp_path / "small.fits.fz"
+    with fitsio.FITS(str(field_files[0])) as source, fitsio.FITS(str(small), "rw") as out:
+        for hdu in source:
+            name = hdu.get_extname()
+            data, header = hdu.read(), hdu.read_header()
+            if name == "IMAGE":
+                plane = np.zeros((64, 64), dtype=np.float32)
+                out.write(plane, extname=name, compress="GZIP_2", tile_dims=(64, 64), qlevel=None)
+            elif hdu.get_exttype() == "IMAGE_HDU":
+                out.write(data, header=header, extname=name or None)
+            else:
+                out.write(data, header=header, extname=name)
+    forged = tmp_path / "forged.fits.fz"
+    sizes = {"ZNAXIS1": 20000, "ZNAXIS2": 20000, "ZTILE1": 20000, "ZTILE2": 20000}
+    forged.write_bytes(_forge_cards(small.read_bytes(), sizes))
+    error = _refused(read_exposure, forged, match="declares a 20000 x 20000 image")
+    assert "forged.fits.fz" in str(error) and "HDU IMAGE" in str(error)
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        ((path, reason),) = index.update(_index_entries([forged])).bad
+    assert path == str(forged) and "HDU IMAGE declares a 20000 x 20000 image" in reason, reason
+
+
+def _forge_row(db: Path, path: str, **columns) -> int:
+    """Set ``columns`` of the row of ``path`` and recompute its checksum (and header
+    SHA-256) so that they agree: a row damaged consistently. Returns the row id."""
+    import sqlite3
+
+    from cellcoadd.io._files.stamps import json_sha256
+    from cellcoadd.io.exposures.index import CHECKED_FIELDS, row_checksum
+
+    with sqlite3.connect(db) as raw:
+        raw.row_factory = sqlite3.Row
+        for name, value in columns.items():
+            raw.execute(f"UPDATE exposures SET {name} = ? WHERE path = ?", (value, path))
+            if name == "header":
+                sha = json_sha256(value)
+                raw.execute("UPDATE exposures SET header_sha256 = ? WHERE path = ?", (sha, path))
+        row = raw.execute("SELECT * FROM exposures WHERE path = ?", (path,)).fetchone()
+        values = {name: row[name] for name in CHECKED_FIELDS}
+        raw.execute(
+            "UPDATE exposures SET checksum = ? WHERE id = ?", (row_checksum(values), row["id"])
+        )
+    raw.close()
+    return int(row["id"])
+
+
+@pytest.mark.parametrize("column", ["corners", "files", "entry", "header"])
+def test_non_json_in_an_index_row_fails_only_that_row_naming_it(tmp_path, field_files, column):
+    """Issue 39: non-JSON in an index row gave 'Expecting value: line 1 column 4', naming
+    no file or row. Even with its checksum made to agree, the row's error names the index,
+    the row, the file and the column; the other rows read."""
+    from run_factory import skymap
+
+    from cellcoadd.errors import IndexRowError
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    db = tmp_path / "inputs.sqlite"
+    with ExposureIndex(db) as index:
+        index.update(_index_entries(field_files))
+    damaged = str(field_files[0])
+    row_id = _forge_row(db, damaged, **{column: '{"a": 1'})
+    tract = skymap()[0]
+    corners = np.column_stack(tract.pixel_to_sky(*_tract_box_corners(tract)))
+    with ExposureIndex(db, readonly=True) as index:
+        rows = index.query(corners)
+        assert len(rows) == len(field_files)
+        full = index.by_ids([row.id for row in rows])
+    for row in full:
+        attempts = [
+            lambda row=row: row.corners,
+            lambda row=row: row.files,
+            lambda row=row: row.entry,
+            row.header,
+        ]
+        if row.path != damaged:
+            for attempt in attempts:
+                attempt()
+            continue
+        with pytest.raises(IndexRowError) as info:
+            for attempt in attempts:
+                attempt()
+        message = str(info.value)
+        assert info.value.row == row_id and info.value.fields == (column,)
+        assert f"row {row_id}" in message and str(db) in message and damaged in message
+        assert f"its {column} column is unusable" in message, message
+    # indexing again reads the file again (a column that must decode to say whether the
+    # file changed: always; a consistent checksum hides the others but from --checksum)
+    with ExposureIndex(db) as index:
+        deep = column in ("corners", "header")
+        update = index.update(_index_entries(field_files), checksum=deep)
+        assert damaged in update.updated and not update.bad
+        assert deep or update.updated == [damaged]
+        for row in index.by_ids([row.id for row in index.query(corners)]):
+            assert row.header().visit == 0 and row.corners.shape == (4, 2) and row.entry
+
+
+def _tract_box_corners(tract):
+    box = tract.bbox
+    x = np.array([box.x_start, box.x_stop, box.x_stop, box.x_start]) - 0.5
+    y = np.array([box.y_start, box.y_start, box.y_stop, box.y_stop]) - 0.5
+    return x, y
+
+
+def test_a_forged_header_row_fails_only_the_patches_using_it(tmp_path, field_files):
+    """Issue 39: non-JSON in an index row aborted the whole run. With the row's checksum
+    made to agree, the patches using it fail naming the row; the others are built."""
+    from run_factory import BUILD, skymap
+
+    from cellcoadd.io.exposures.index import ExposureIndex
+    from cellcoadd.pipelines.survey import run_tract
+
+    db = tmp_path / "inputs.sqlite"
+    with ExposureIndex(db) as index:
+        index.update(_index_entries(field_files))
+    row_id = _forge_row(db, str(field_files[0]), header="[1, 2")  # detector 0, patch (0, 0)
+    result = _within_deadline(
+        run_tract, db, skymap(), 0, tmp_path / "out", config=BUILD, progress=False,
+        figure=False, retries=0,
+    )  # fmt: skip
+    assert result.failed and result.built and not result.plan_failed
+    for key, why in result.failed.items():
+        assert f"row {row_id}" in why and "header column" in why, why
+        assert max(key.px, key.py) <= 1, key  # only patches detector 0 touches
+    assert len(result.failed) + len(result.built) == len(result.planned)
+
+
+def test_a_second_file_of_one_visit_and_detector_is_refused(tmp_path, field_files):
+    """Issue 39: the index accepted two files of the same (visit, detector), and the run
+    then retried each patch using them in vain."""
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    copy = tmp_path / "copy-of-det0.fits"
+    shutil.copy(field_files[0], copy)
+    db = tmp_path / "inputs.sqlite"
+    with ExposureIndex(db) as index:
+        first = index.update(_index_entries([field_files[0], copy, field_files[1]]))
+        assert first.added == [str(field_files[0]), str(field_files[1])]
+        ((path, reason),) = first.bad
+        assert path == str(copy) and "(visit=0, detector=0)" in reason, reason
+        assert f"already indexed from {field_files[0]}" in reason
+        again = index.update(_index_entries([copy]))  # in a later update too
+        assert [p for p, _ in again.bad] == [str(copy)]
+        assert index.stats()["ok"] == 2
+    result = _index_cli(str(copy), "--db", str(db), "-q")
+    assert result.exit_code == 1 and str(field_files[0]) in result.output, result.output
+
+
+def test_index_command_exits_non_zero_on_bad_files_and_lists_them_when_quiet(tmp_path, field_files):
+    """Issue 39: `cellcoadd index` exited 0 when every file was bad, and -q hid the list."""
+    db = str(tmp_path / "inputs.sqlite")
+    bad = []
+    for name in ("empty.fits", "text.fits"):
+        bad.append(tmp_path / name)
+        bad[-1].write_bytes(b"" if name == "empty.fits" else b"not FITS\n" * 400)
+    result = _index_cli(*map(str, bad), "--db", db, "-q")
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("bad: ")]
+    assert len(lines) == 2 and all(any(str(p) in line for line in lines) for p in bad), lines
+    assert "2 files are bad" in _index_said(result)
+    result = _index_cli(str(field_files[0]), *map(str, bad), "--db", db, "-q", "--allow-bad")
+    assert result.exit_code == 0 and "1 added" in result.output, result.output
+    assert sum(line.startswith("bad: ") for line in result.output.splitlines()) == 2
+    result = _index_cli(str(field_files[0]), "--db", db)  # only good files: success
+    assert result.exit_code == 0 and "1 unchanged" in result.output, result.output
+    help_text = _index_cli("--help").output
+    assert "exits with status 1" in help_text and "--allow-bad" in help_text
+
+
+def test_a_missing_zero_point_names_the_manifest_field(tmp_path, psfex_path):
+    """Issue 43.4: the index's error said 'pass zero_point=', a Python keyword, to a user
+    who writes manifest.toml."""
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    small = _small_compressed_lsst(tmp_path)  # no FLUXMAG0, no BUNIT
+    with ExposureIndex(tmp_path / "inputs.sqlite") as index:
+        entries = _index_entries([small], layout="lsst", psf=str(psfex_path))
+        ((path, reason),) = index.update(entries).bad
+    assert path == str(small) and "no zero point" in reason, reason
+    assert "set `zero_point = ...` in the file's manifest entry (manifest.toml)" in reason
+    assert "pass zero_point=" not in reason
