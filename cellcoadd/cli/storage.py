@@ -15,7 +15,7 @@ from cellcoadd.io import api
 from cellcoadd.model import planes as cell_planes
 from cellcoadd.model.inputs import REJECTION_REASONS
 from cellcoadd.model.patch_coadd import PatchMetadata
-from cellcoadd.model.schemas import write_schemas
+from cellcoadd.model.schemas import schema_documents
 
 _ERRORS = (CellCoaddFormatError, OSError, ValueError)
 
@@ -258,9 +258,17 @@ def schemas_command(out_dir: str) -> None:
       cellcoadd schemas --out schemas/
       cellcoadd schemas --out /tmp/schemas && diff -r /tmp/schemas schemas
     """
-    try:
-        written = write_schemas(out_dir)
-    except OSError as err:
+    from pathlib import Path
+
+    from cellcoadd.io._files.atomic import atomic_write_text
+
+    try:  # atomically, replacing a link in the folder, never writing through it
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        written = [
+            atomic_write_text(Path(out_dir) / name, text, overwrite=True)
+            for name, text in schema_documents().items()
+        ]
+    except (OSError, CellCoaddFormatError) as err:
         raise click.ClickException(str(err)) from err
     for path in written:
         click.echo(str(path))

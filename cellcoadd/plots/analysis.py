@@ -16,6 +16,7 @@ import numpy as np
 from cellcoadd.analysis.rejection import RejectionStats
 from cellcoadd.analysis.snr_loss import SnrLossTable, exact_ratio_curve, toy_variance_ratio
 from cellcoadd.plots import style
+from cellcoadd.plots.style import save as save_figure
 
 
 @style.styled
@@ -81,7 +82,7 @@ def plot_snr_loss(table: SnrLossTable, path: str | Path, n_curve: int = 41, dpi:
     )
     axes.legend(fontsize=8, frameon=False)
     figure.tight_layout()
-    figure.savefig(path, dpi=dpi)
+    save_figure(figure, path, dpi)  # atomically: a link there is replaced
     return path
 
 
@@ -130,5 +131,5 @@ def plot_rejection(results: Sequence[RejectionStats], path: str | Path, dpi: int
     right.set_xlabel("5-sigma depth loss per cell (mag)")
     left.legend(fontsize=7, frameon=False, ncol=2)
     figure.tight_layout()
-    figure.savefig(path, dpi=dpi)
+    save_figure(figure, path, dpi)  # atomically: a link there is replaced
     return path

@@ -85,6 +85,14 @@ def figure(width: float, height: float, *, compressed: bool = False) -> Any:
 
 
 def save(fig: Any, path: str | os.PathLike[str], dpi: int = DPI) -> str:
-    """Write ``fig`` as a PNG at ``dpi``; returns the path."""
-    fig.savefig(path, dpi=dpi)
+    """Write ``fig`` as a PNG (or the format its name ends with) at ``dpi``, atomically:
+    a link at ``path`` is replaced, never written through; returns the path."""
+    from cellcoadd.io._files.atomic import atomic_write
+
+    kind = os.path.splitext(os.fspath(path))[1].lstrip(".").lower() or "png"
+
+    def write(temporary: Any) -> None:
+        fig.savefig(temporary, dpi=dpi, format=kind)  # the temporary name has no suffix
+
+    atomic_write(path, write, overwrite=True)
     return os.fspath(path)

@@ -13,7 +13,13 @@ A path is refused (:class:`~cellcoadd.errors.CellCoaddFormatError` naming it) wh
   to ``/dev/zero``), sockets and directories are refused without being opened, so a read
   neither hangs nor grows without bound; a stated ``max_bytes`` bounds the size;
 * (writing) the target exists and is not a regular file (a FIFO would block the final
-  rename's readers, a device would be replaced by our file).
+  rename's readers, a device would be replaced by our file);
+* (creating or updating in place: a SQLite database, a lock, ``cellcoadd init``'s files)
+  the name itself is a symbolic link, dangling or not (:func:`gate_create`): writing
+  through it would create or change its target, which may lie outside the folder.
+
+:func:`open_nofollow` opens such a file for reading and writing with ``O_NOFOLLOW`` and
+``O_NONBLOCK``, and checks the open descriptor is a regular file.
 
 :func:`read_bytes` reads a small file whole through the gate, opening it non-blocking and
 checking the open descriptor again, so a file swapped for a FIFO after the check cannot
@@ -143,6 +149,81 @@ def gate_write(path: PathLike, *, what: str = "file", fits: bool = False) -> str
             name, f"refused to write over {_kind(info.st_mode)}: not a regular file"
         )
     return resolved
+
+
+def gate_create(path: PathLike, *, what: str = "file", companions: tuple[str, ...] = ()) -> str:
+    """The absolute path of a file a writer creates or changes in place at ``path`` itself.
+
+    Unlike :func:`gate_write` (whose atomic rename replaces a link, never its target),
+    the name is not resolved: a symbolic link there, dangling or not, is refused, as is
+    anything but a regular file, before anything opens it. The folders above it may be
+    links (only the last component is checked, as ``O_NOFOLLOW`` does).
+
+    Parameters
+    ----------
+    path : path-like
+        The file (it need not exist).
+    what : str
+        What the file is, for messages ("run ledger", ...).
+    companions : tuple of str
+        Suffixes of files the writer also creates next to it, checked the same way
+        (SQLite's ``"-journal"``, ``"-wal"``, ``"-shm"``).
+
+    Raises
+    ------
+    CellCoaddFormatError
+        Naming ``path`` (or the companion) and what is there.
+    """
+    name = _name(path)
+    for candidate in (name, *(name + suffix for suffix in companions)):
+        try:
+            info = os.lstat(candidate)
+        except FileNotFoundError:
+            continue
+        except OSError as err:
+            raise CellCoaddFormatError(
+                candidate, f"cannot access the {what} ({err.strerror})"
+            ) from None
+        if stat.S_ISLNK(info.st_mode):
+            raise CellCoaddFormatError(
+                candidate,
+                f"refused: a symbolic link (to {os.readlink(candidate)}) where the {what} "
+                "is written; it is never written through a link: remove the link",
+            )
+        if not stat.S_ISREG(info.st_mode):
+            raise CellCoaddFormatError(
+                candidate,
+                f"refused: {_kind(info.st_mode)} where the {what} is written, not a regular file",
+            )
+    return os.path.abspath(name)
+
+
+def open_nofollow(path: PathLike, *, what: str = "file", mode: int = 0o644) -> int:
+    """A read-write descriptor of the regular file ``path`` itself, created when missing.
+
+    Opened with ``O_NOFOLLOW`` (a symbolic link is refused, never followed) and
+    ``O_NONBLOCK`` (a FIFO cannot block the open), then checked on the descriptor.
+
+    Raises
+    ------
+    CellCoaddFormatError
+        When ``path`` is a link, not a regular file, or cannot be opened (names it).
+    """
+    name = _name(path)
+    flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | getattr(os, "O_NONBLOCK", 0)
+    try:
+        descriptor = os.open(name, flags, mode)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            gate_create(name, what=what)  # names the link and its target
+        raise CellCoaddFormatError(
+            name, f"cannot open the {what} ({err.strerror or err})"
+        ) from None
+    info = os.fstat(descriptor)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(descriptor)
+        raise CellCoaddFormatError(name, f"the {what} is {_kind(info.st_mode)}, not a regular file")
+    return descriptor
 
 
 def read_bytes(path: PathLike, *, what: str, max_bytes: int) -> bytes:

@@ -32,6 +32,7 @@ import fcntl
 import json
 import os
 import socket
+import sqlite3
 import stat
 import sys
 import time
@@ -39,8 +40,10 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from cellcoadd.errors import CellCoaddFormatError, ConfigError, RunLockedError
-from cellcoadd.io._files.path_gate import gate_write
+from cellcoadd.io._files.path_gate import gate_create, open_nofollow
 from cellcoadd.io._files.sqlite_files import open_own_database
 from cellcoadd.io._files.stamps import file_sha256, json_sha256
 from cellcoadd.pipelines.survey.records import PatchKey, PatchRecord, PatchState
@@ -53,6 +56,8 @@ LOCK_NAME = ".run.lock"
 SCHEMA_VERSION = 2
 #: ``PRAGMA application_id`` of a run ledger ("CCXL").
 APPLICATION_ID = 0x4343584C
+#: the files SQLite creates next to a database (rollback journal; WAL files if enabled)
+_SQLITE_COMPANIONS = ("-journal", "-wal", "-shm")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -97,9 +102,14 @@ def is_current(
     ``out_dir``) is intact: its size, and with ``verify`` the SHA-256 of its bytes."""
     if record.state != PatchState.DONE or record.signature != signature:
         return False
-    path = Path(out_dir) / record.output
+    relative = Path(record.output)
+    if relative.is_absolute() or ".." in relative.parts:
+        return False  # a stored row never points outside DIR
+    path = Path(out_dir) / relative
     try:
-        if not path.is_file() or path.stat().st_size != record.size:
+        # the file itself, not a link's target, and never a FIFO or device to hash
+        info = path.lstat()
+        if not stat.S_ISREG(info.st_mode) or info.st_size != record.size:
             return False
         return not verify or file_sha256(path) == record.checksum
     except OSError:
@@ -120,10 +130,13 @@ class Ledger:
 
     def __init__(self, out_dir: str | os.PathLike[str], skymap_json: str | None = None):
         self.path = os.path.join(os.fspath(out_dir), LEDGER_NAME)
-        # a FIFO, a device or a directory in its place is refused before SQLite opens it
-        resolved = gate_write(self.path, what="run ledger")
+        #: rows :meth:`records` could not read: ``"row N"`` -> why (names the ledger)
+        self.unreadable: dict[str, str] = {}
+        # a link (SQLite would create or change its target, outside DIR), a FIFO, a device
+        # or a directory in its place, or in its journal's, is refused before SQLite opens it
+        path = gate_create(self.path, what="run ledger", companions=_SQLITE_COMPANIONS)
         self._db = open_own_database(
-            resolved,
+            path,
             application_id=APPLICATION_ID,
             version=SCHEMA_VERSION,
             schema=_SCHEMA,
@@ -133,14 +146,20 @@ class Ledger:
         if skymap_json is None:
             return
         digest = json_sha256(json.loads(skymap_json))
-        row = self._db.execute("SELECT value FROM meta WHERE key = 'skymap_sha256'").fetchone()
+        try:
+            row = self._db.execute(
+                "SELECT CAST(value AS BLOB) FROM meta WHERE key = 'skymap_sha256'"
+            ).fetchone()
+        except sqlite3.DatabaseError as err:
+            self._db.close()
+            raise CellCoaddFormatError(self.path, f"cannot read its sky map ({err})") from None
         if row is None:
             with self._db:
                 self._db.executemany(
                     "INSERT INTO meta VALUES (?, ?)",
                     [("skymap_sha256", digest), ("skymap", skymap_json)],
                 )
-        elif row[0] != digest:
+        elif row[0] != digest.encode():
             self._db.close()
             raise ConfigError(
                 f"{out_dir} holds patches of another sky map (ledger {self.path}): give a "
@@ -161,12 +180,22 @@ class Ledger:
     ) -> dict[PatchKey, PatchRecord]:
         """The patches of ``band`` and ``tract`` (every one when None), by key.
 
+        A row that cannot be read (key columns of the wrong type, a record that is not a
+        :class:`PatchRecord` in JSON, or one naming another patch) is left out, so a run
+        builds that patch again (which replaces the row), and is named in
+        :attr:`unreadable` with the ledger's path and the row's number and patch. Only
+        the ledger file as a whole being unreadable raises.
+
         Raises
         ------
         CellCoaddFormatError
-            When a stored record cannot be read (names the ledger and the patch).
+            When SQLite cannot read the table (names the ledger).
         """
-        sql = "SELECT band, tract, px, py, record FROM patches"
+        # raw bytes: a text column of invalid UTF-8 would stop the whole query in sqlite3
+        sql = (
+            "SELECT rowid, typeof(band), CAST(band AS BLOB), tract, px, py, "
+            "CAST(record AS BLOB) FROM patches"
+        )
         where: list[str] = []
         params: list[Any] = []
         if band is not None:
@@ -178,14 +207,18 @@ class Ledger:
         if where:
             sql += " WHERE " + " AND ".join(where)
         out = {}
-        for row in self._db.execute(sql, params):
-            key = PatchKey(row[0], row[1], row[2], row[3])
-            try:
-                out[key] = PatchRecord.model_validate_json(row[4])
-            except ValueError as err:
-                raise CellCoaddFormatError(
-                    self.path, f"the record of {key} is unreadable ({err}); remove that row"
-                ) from None
+        try:
+            rows = self._db.execute(sql, params).fetchall()
+        except sqlite3.DatabaseError as err:
+            raise CellCoaddFormatError(self.path, f"cannot read the patches ({err})") from None
+        for row in rows:
+            read = _read_row(*row)
+            if isinstance(read, PatchRecord):
+                out[read.key] = read
+            else:
+                self.unreadable[f"row {row[0]}"] = (
+                    f"{self.path}: row {row[0]} of the patches table is unreadable: {read}"
+                )
         return out
 
     def put(self, record: PatchRecord) -> None:
@@ -219,6 +252,59 @@ class Ledger:
             )
 
 
+def _read_row(
+    rowid: int,
+    band_type: str,
+    band: object,
+    tract: object,
+    px: object,
+    py: object,
+    record: object,
+) -> PatchRecord | str:
+    """The record of a stored row, or why it cannot be read (naming its patch if known)."""
+    band_text = None
+    if band_type == "text" and isinstance(band, bytes):  # a blob never matches band = ?
+        try:
+            band_text = band.decode("utf-8")
+        except UnicodeDecodeError:
+            band_text = None
+    numbers = (tract, px, py)
+    if band_text is None or not all(isinstance(n, int) for n in numbers):
+        return (
+            f"its key is not a band and three integers (band {band!r}, tract {tract!r}, "
+            f"patch {px!r},{py!r}); that row is ignored: remove it"
+        )
+    key = PatchKey(band_text, *numbers)  # type: ignore[arg-type]
+    if not isinstance(record, bytes):
+        return f"{key}: no record ({record!r}); that patch is built again"
+    try:
+        parsed = PatchRecord.model_validate_json(record)
+    except ValueError as err:
+        why = _first_error(err)
+        return f"{key}: its record is not a patch record ({why}); that patch is built again"
+    if parsed.key != key:
+        return f"{key}: its record is of {parsed.key}; that patch is built again"
+    stem = f"{key.band}/tract_{key.tract}/patch_{key.px}_{key.py}"
+    if parsed.output not in (stem + ".fits", stem + ".h5"):
+        return (
+            f"{key}: its record names the output {parsed.output!r}, not this patch's; that "
+            "patch is built again"
+        )
+    return parsed
+
+
+def _first_error(err: ValueError) -> str:
+    """The first problem a validation error names, on one short line."""
+    if isinstance(err, ValidationError) and err.errors():
+        first = err.errors()[0]
+        where = ".".join(str(part) for part in first.get("loc", ()))
+        text = f"{where}: {first['msg']}" if where else str(first["msg"])
+    else:
+        text = str(err)
+    text = " ".join(text.split())
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
 class RunLock:
     """An exclusive lock on an output directory for one run (``with RunLock(dir):``).
 
@@ -234,15 +320,9 @@ class RunLock:
         self._fd: int | None = None
 
     def __enter__(self) -> RunLock:
-        try:  # never through a symbolic link, never a FIFO or device (opened non-blocking)
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
-        except OSError as err:
-            raise CellCoaddFormatError(
-                self.path, f"cannot be used as the run lock ({err.strerror or err}); remove it"
-            ) from None
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            os.close(fd)
-            raise CellCoaddFormatError(self.path, "is not a regular file; remove it")
+        # never through a symbolic link (its target would be truncated), never a FIFO or a
+        # device (opened non-blocking and checked on the descriptor)
+        fd = open_nofollow(self.path, what="run lock")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

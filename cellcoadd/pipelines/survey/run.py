@@ -490,6 +490,13 @@ def _to_build(
             )  # fmt: skip
             result.planned.append(key)
             target = out_dir / output
+            in_the_way = _not_a_patch_file(target)
+            if in_the_way is not None:  # never removed, never written through: this patch fails
+                result.failed[key] = in_the_way
+                immediate.append(
+                    record.model_copy(update={"state": PatchState.FAILED, "error": in_the_way})
+                )
+                continue
             if not item.inputs:
                 result.no_inputs.append(key)
                 target.unlink(missing_ok=True)  # built before from inputs now gone: stale
@@ -532,6 +539,20 @@ def _to_build(
     # the costliest first (inputs: the cost scales with them), in a stable order
     tasks.sort(key=lambda task: (-len(task.inputs), task.key))
     return tasks, records
+
+
+def _not_a_patch_file(target: Path) -> str | None:
+    """Why the patch output ``target`` cannot be checked, removed or replaced (a directory,
+    a link, a FIFO or a device in its place), as a failed patch's error; None if it is a
+    regular file or absent."""
+    from cellcoadd.errors import CellCoaddFormatError
+    from cellcoadd.io._files.path_gate import gate_create
+
+    try:
+        gate_create(target, what="patch file")
+    except CellCoaddFormatError as err:
+        return error_text(err)
+    return None
 
 
 def _recorder(
