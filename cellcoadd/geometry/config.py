@@ -13,6 +13,25 @@ from cellcoadd.errors import ConfigError
 _OPTIONAL_FIELDS = ("tangent_pixel", "name")
 
 
+#: Bounds of the sizes, generous for real surveys and checked before any work (a patch of
+#: 10,000 x 10,000 cells died of MemoryError; at 1e-9 arcsec/pixel a tract's corners are
+#: no longer distinct points). Rubin's ``lsst_cells_v1``: 0.2"/px, 150-px cells, 20 x 20
+#: cells per patch (3,400 px with borders); DES tiles: 10,000 px at 0.263"/px; the finest
+#: survey pixels are tens of milliarcseconds (HST, JWST), the coarsest tens of arcsec.
+MIN_PIXEL_SCALE = 0.001
+MAX_PIXEL_SCALE = 60.0
+MAX_CELL_INNER = 4096
+MAX_CELLS_PER_PATCH = 200
+#: Side of a patch's outer region (inner and border cells, cell borders), pixels.
+MAX_PATCH_PIXELS = 65536
+#: The bounded sizes: (lowest, highest, unit), for messages naming the allowed range.
+_RANGES: dict[str, tuple[float, float, str]] = {
+    "pixel_scale": (MIN_PIXEL_SCALE, MAX_PIXEL_SCALE, "arcsec/pixel"),
+    "cell_inner": (1, MAX_CELL_INNER, "pixels"),
+    "cells_per_patch": (1, MAX_CELLS_PER_PATCH, "cells"),
+}
+
+
 class SkyMapConfig(BaseModel):
     """Sizes that define the tract -> patch -> cell hierarchy (frozen, stored in every file).
 
@@ -23,13 +42,14 @@ class SkyMapConfig(BaseModel):
     Parameters
     ----------
     pixel_scale : float
-        Coadd pixel scale, arcsec/pixel.
+        Coadd pixel scale, arcsec/pixel (0.001 to 60).
     cell_inner : int
-        Side of a cell's inner region, pixels.
+        Side of a cell's inner region, pixels (1 to 4096).
     cell_border : int
         Buffer added on each side of the inner region to make the outer region, pixels.
     cells_per_patch : int
-        Inner cells along each side of a patch.
+        Inner cells along each side of a patch (1 to 200; a patch's outer region, border
+        cells included, at most 65,536 pixels on a side).
     patch_border_cells : int
         Border cells on each side of a patch (they are the neighbours' inner cells).
     patches_per_tract : int
@@ -75,6 +95,14 @@ class SkyMapConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check_consistency(self) -> SkyMapConfig:
+        for name, (low, high, unit) in _RANGES.items():
+            value = getattr(self, name)
+            if not low <= value <= high:  # NaN too
+                raise ConfigError(
+                    f"{name} = {value} {unit} is outside the allowed range [{low:g}, {high:g}]",
+                    value=value,
+                    allowed=(low, high),
+                )
         if self.cell_border > self.cell_inner:
             raise ConfigError(
                 f"cell_border ({self.cell_border} px) must not exceed cell_inner "
@@ -86,6 +114,15 @@ class SkyMapConfig(BaseModel):
             raise ConfigError(
                 f"patch_border_cells ({self.patch_border_cells}) must not exceed "
                 f"cells_per_patch ({self.cells_per_patch})"
+            )
+        if self.patch_outer > MAX_PATCH_PIXELS:
+            raise ConfigError(
+                f"a patch of {self.patch_outer} pixels on a side (cells_per_patch "
+                f"{self.cells_per_patch} + 2 x patch_border_cells {self.patch_border_cells} "
+                f"cells of cell_inner {self.cell_inner} px, + 2 x cell_border "
+                f"{self.cell_border} px) is larger than the {MAX_PATCH_PIXELS} accepted",
+                value=self.patch_outer,
+                allowed=(1, MAX_PATCH_PIXELS),
             )
         if self.tangent_pixel is not None and self.tangent_pixel >= self.tract_pixels:
             raise ConfigError(
@@ -116,6 +153,13 @@ class SkyMapConfig(BaseModel):
     def patch_inner(self) -> int:
         """Side of a patch's inner region, pixels."""
         return self.cell_inner * self.cells_per_patch
+
+    @property
+    def patch_outer(self) -> int:
+        """Side of a patch's outer region (its border cells and their borders), pixels."""
+        return (
+            self.cells_per_patch + 2 * self.patch_border_cells
+        ) * self.cell_inner + 2 * self.cell_border
 
     @property
     def tract_pixels(self) -> int:
