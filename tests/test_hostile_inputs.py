@@ -713,6 +713,340 @@ def test_a_trusted_manifest_piff_psf_reads(tmp_path, lsst_file):
     assert isinstance(source.psf, PiffPsf)
 
 
+# Round 4: init, writers, the ledger and run options ------------------------------------------
+# `cellcoadd init` and every file a writer creates in place (ledger, lock, index) never
+# follow a symbolic link; sky map sizes are bounded before work; a bad ledger row fails
+# (or rebuilds) only its patch; a directory in a patch's place fails only that patch.
+
+
+def _outside(tmp_path: Path, text: str = "precious\n") -> Path:
+    """A file outside the folder under test, which nothing may create or change."""
+    (tmp_path / "elsewhere").mkdir(exist_ok=True)
+    target = tmp_path / "elsewhere" / "precious.txt"
+    target.write_text(text)
+    return target
+
+
+def _init(root: Path, *extra: str):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+
+    return _within_deadline(
+        CliRunner().invoke, cli, ["init", "--survey", "lsst", str(root), *extra]
+    )
+
+
+@pytest.fixture
+def init_dir(tmp_path, lsst_file) -> Path:
+    root = tmp_path / "visits"
+    root.mkdir()
+    shutil.copy(lsst_file, root / "calexp_2024031500123_R22_S11.fits")
+    (root / "calexp_2024031500123_R22_S11_psfexcat.psf").write_bytes(b"")
+    return root
+
+
+def test_init_never_writes_through_a_link(tmp_path, init_dir):
+    target = tmp_path / "elsewhere" / "created.toml"
+    (init_dir / "manifest.toml").symlink_to(target)  # dangling: init once created its target
+    for extra in ((), ("--overwrite",)):
+        result = _init(init_dir, *extra)
+        assert result.exit_code == 1, result.output
+        assert "manifest.toml: refused: a symbolic link" in result.output
+        assert not target.exists() and not target.parent.exists()
+    (init_dir / "manifest.toml").unlink()
+    precious = _outside(tmp_path)
+    (init_dir / "build.toml").symlink_to(precious)  # with --overwrite it was overwritten
+    result = _init(init_dir, "--overwrite")
+    assert result.exit_code == 1 and "build.toml: refused: a symbolic link" in result.output
+    assert precious.read_text() == "precious\n" and (init_dir / "build.toml").is_symlink()
+    assert not (init_dir / "manifest.toml").exists()  # refused before anything is written
+
+
+def test_init_refuses_a_fifo_without_blocking_and_writes_atomically(init_dir):
+    os.mkfifo(init_dir / "manifest.toml")
+    result = _init(init_dir, "--overwrite")  # blocked forever before
+    assert result.exit_code == 1 and "manifest.toml: refused: a FIFO" in result.output
+    os.unlink(init_dir / "manifest.toml")
+    (init_dir / "build.toml").mkdir()
+    result = _init(init_dir, "--overwrite")
+    assert result.exit_code == 1 and "build.toml: refused: a directory" in result.output
+    (init_dir / "build.toml").rmdir()
+    assert _init(init_dir).exit_code == 0
+    first = (init_dir / "manifest.toml").read_bytes()
+    inode = (init_dir / "manifest.toml").stat().st_ino
+    assert _init(init_dir).exit_code == 1  # exists, no --overwrite
+    assert _init(init_dir, "--overwrite").exit_code == 0
+    # replaced by a rename (a new inode), same content, no temporary file left
+    assert (init_dir / "manifest.toml").stat().st_ino != inode
+    assert (init_dir / "manifest.toml").read_bytes() == first
+    assert not [p for p in init_dir.iterdir() if ".tmp-" in p.name]
+
+
+def test_gate_create_and_open_nofollow_never_follow_a_link(tmp_path):
+    from cellcoadd.io._files.path_gate import gate_create, open_nofollow
+
+    dangling = tmp_path / "db.sqlite"
+    dangling.symlink_to(tmp_path / "elsewhere" / "new.sqlite")
+    for call in (gate_create, open_nofollow):
+        with pytest.raises(CellCoaddFormatError, match=r"db\.sqlite: refused: a symbolic link"):
+            call(dangling, what="index")
+    assert not (tmp_path / "elsewhere").exists()
+    os.mkfifo(tmp_path / "fifo")
+    with pytest.raises(CellCoaddFormatError, match="FIFO"):
+        gate_create(tmp_path / "fifo")
+    with pytest.raises(CellCoaddFormatError, match="FIFO"):
+        _within_deadline(open_nofollow, tmp_path / "fifo")
+    (tmp_path / "ok.sqlite-journal").symlink_to(_outside(tmp_path))
+    with pytest.raises(CellCoaddFormatError, match=r"ok\.sqlite-journal: refused: a symbolic"):
+        gate_create(tmp_path / "ok.sqlite", companions=("-journal",))
+    assert gate_create(tmp_path / "new.sqlite") == str(tmp_path / "new.sqlite")
+    descriptor = open_nofollow(tmp_path / "new.lock")
+    os.close(descriptor)
+    assert (tmp_path / "new.lock").is_file()
+
+
+@pytest.fixture(scope="module")
+def survey_dir(tmp_path_factory) -> Path:
+    """A small indexed field (one band, 2 x 2 patches), its sky map and configuration,
+    and a complete run in ``reference``."""
+    from run_factory import BUILD, skymap, write_field
+
+    from cellcoadd.io.exposures.index import ExposureIndex, absolute_entry
+    from cellcoadd.model.manifest import ManifestEntry
+    from cellcoadd.pipelines.survey import run_tract
+
+    root = tmp_path_factory.mktemp("survey")
+    paths = write_field(root / "inputs", n_visits=1, patches_per_tract=2)
+    with ExposureIndex(root / "inputs.sqlite") as index:
+        index.update([absolute_entry(ManifestEntry(path=str(p)), ".") for p in paths])
+    (root / "skymap.json").write_text(skymap(2).to_json())
+    (root / "build.json").write_text(BUILD.model_dump_json())
+    result = run_tract(
+        root / "inputs.sqlite", skymap(2), 0, root / "reference", config=BUILD,
+        progress=False, figure=False,
+    )  # fmt: skip
+    assert len(result.built) == 4 and result.ok
+    return root
+
+
+def _run(root: Path, out: Path, *extra: str, skymap: Path | None = None):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+
+    args = [
+        "run", "--index", str(root / "inputs.sqlite"), "--skymap",
+        str(skymap or root / "skymap.json"), "--out-dir", str(out), "--config",
+        str(root / "build.json"), "-q", "--no-figure", *extra,
+    ]  # fmt: skip
+    return _within_deadline(CliRunner().invoke, cli, args)
+
+
+def _said(result) -> str:
+    """What a command printed, and the error it ended with."""
+    return result.output + ("" if result.exception is None else str(result.exception))
+
+
+def _sha(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_run_lock_ledger_and_index_never_follow_a_link(tmp_path, survey_dir):
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    precious = _outside(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".run.lock").symlink_to(precious)  # its target was truncated to 0 bytes
+    result = _run(survey_dir, out)
+    assert result.exit_code == 1 and ".run.lock: refused: a symbolic link" in _said(result)
+    assert precious.read_text() == "precious\n"
+    (out / ".run.lock").unlink()
+    (out / "ledger.sqlite").symlink_to(tmp_path / "elsewhere" / "ledger.sqlite")
+    result = _run(survey_dir, out)
+    assert result.exit_code == 1 and "ledger.sqlite: refused: a symbolic link" in _said(result)
+    assert not (tmp_path / "elsewhere" / "ledger.sqlite").exists()
+    assert not list(out.glob("*/tract_*/patch_*"))  # refused before any work
+    (tmp_path / "db.sqlite").symlink_to(tmp_path / "elsewhere" / "index.sqlite")
+    with pytest.raises(CellCoaddFormatError, match="refused: a symbolic link"):
+        ExposureIndex(tmp_path / "db.sqlite")
+    assert not (tmp_path / "elsewhere" / "index.sqlite").exists()
+
+
+def test_foreign_sqlite_files_are_refused_unmodified(tmp_path, survey_dir):
+    import sqlite3
+
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+
+    foreign = tmp_path / "foreign.sqlite"
+    with sqlite3.connect(foreign) as db:
+        db.execute("CREATE TABLE notes (text TEXT)")
+    db.close()
+    ledger = survey_dir / "reference" / "ledger.sqlite"
+    exposure = next((survey_dir / "inputs").glob("*.fits"))
+    for db_path in (foreign, ledger):
+        before = _sha(db_path)
+        result = CliRunner().invoke(cli, ["index", str(exposure), "--db", str(db_path)])
+        said = _said(result)
+        assert result.exit_code != 0 and f"{db_path}: not a" in said, said
+        assert "exposure index" in said and "left unmodified" in said
+        assert _sha(db_path) == before  # 'ledger.sqlite' was modified, then failed on 'nside'
+    # an index named ledger.sqlite in the output folder is not taken as the ledger
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(survey_dir / "inputs.sqlite", out / "ledger.sqlite")
+    before = _sha(out / "ledger.sqlite")
+    result = _run(survey_dir, out)
+    assert result.exit_code == 1 and "not a run ledger" in _said(result), _said(result)
+    assert _sha(out / "ledger.sqlite") == before and not list(out.glob("*/tract_*"))
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (("--retries", "-1"), "-1 is not in the range 0<=x<=100"),
+        (("--seed", "18446744073709551616"), "is not in the range 0<=x<=9223372036854775807"),
+        (("--seed", "-1"), "-1 is not in the range 0<=x<=9223372036854775807"),
+    ],
+)
+def test_run_options_are_click_ranges_checked_before_work(tmp_path, survey_dir, extra, message):
+    result = _run(survey_dir, tmp_path / "out", *extra)
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unknown_band_is_refused_naming_the_bands(tmp_path, survey_dir):
+    result = _run(survey_dir, tmp_path / "out", "--band", "nope")  # exited 0, 0 planned
+    assert result.exit_code == 1
+    assert "band(s) ['nope'] have no usable input" in str(result.exception)
+    assert "its bands are ['r']" in str(result.exception)
+    assert not list((tmp_path / "out").glob("*/tract_*"))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        (
+            "cells_per_patch",
+            10000,
+            "cells_per_patch = 10000 cells is outside the allowed range [1, 200]",
+        ),
+        (
+            "pixel_scale",
+            1e-9,
+            "pixel_scale = 1e-09 arcsec/pixel is outside the allowed range [0.001, 60]",
+        ),
+        ("cell_inner", 100000, "cell_inner = 100000 pixels is outside the allowed range [1, 4096]"),
+        ("pixel_scale", "1e-9", "pixel_scale = 1e-09 arcsec/pixel is outside"),
+    ],
+)
+def test_sky_map_sizes_are_bounded_before_work(tmp_path, survey_dir, field, value, message):
+    import re
+
+    from cellcoadd.geometry import SkyMap, SkyMapConfig
+    from cellcoadd.geometry.skymap import LSST_SKYMAPS
+
+    spec = json.loads((survey_dir / "skymap.json").read_text())
+    spec["config"][field] = value  # MemoryError in the patch; "Polygon has degenerate corner."
+    (tmp_path / "bad.json").write_text(json.dumps(spec))
+    result = _run(survey_dir, tmp_path / "out", skymap=tmp_path / "bad.json")
+    assert result.exit_code == 1 and message in _said(result), _said(result)
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match=re.escape(message)):
+        SkyMapConfig(**{field: value})
+    # the surveys' own sizes, and a patch the size of a DES tile, are inside the bounds
+    for name in LSST_SKYMAPS:
+        assert SkyMap.named(name).config.patch_outer <= 3400
+    des = SkyMapConfig(pixel_scale=0.263, cell_inner=200, cell_border=50, cells_per_patch=50)
+    assert des.patch_inner == 10000
+    with pytest.raises(ValueError, match="a patch of 202100 pixels on a side"):
+        SkyMapConfig(cells_per_patch=200, cell_inner=1000, cell_border=50)
+
+
+def _copy_run(survey_dir: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "out"
+    shutil.copytree(survey_dir / "reference", out)
+    return out
+
+
+def test_a_bad_ledger_row_rebuilds_only_its_patch(tmp_path, survey_dir):
+    import sqlite3
+
+    from cellcoadd.pipelines.survey.ledger import Ledger
+
+    out = _copy_run(survey_dir, tmp_path)
+    with sqlite3.connect(out / "ledger.sqlite") as db:  # "Expecting value: line 1 column 4"
+        db.execute("UPDATE patches SET record = 'r {' WHERE px = 0 AND py = 1")
+        record = db.execute("SELECT record FROM patches WHERE px = 1 AND py = 1").fetchone()[0]
+        other = record.replace('"px":1,"py":1', '"px":0,"py":0')
+        db.execute("UPDATE patches SET record = ? WHERE px = 1 AND py = 1", (other,))
+        db.execute(  # a row whose key is not a patch: named, never rebuilt
+            "INSERT INTO patches VALUES (?, 0, 'x', 0, 'done', CAST(? AS BLOB), 0)",
+            (b"\xff\xfe", b"\x00\xff"),
+        )
+    db.close()
+    with Ledger(out) as ledger:
+        records = ledger.records()
+        assert {k.patch for k in records} == {(0, 0), (1, 0)}
+        said = "\n".join(ledger.unreadable.values())
+    assert f"{out / 'ledger.sqlite'}: row " in said
+    assert "r tract 0 patch 0,1: its record is not a patch record" in said
+    assert "r tract 0 patch 1,1: its record is of r tract 0 patch 0,0" in said
+    assert "its key is not a band and three integers" in said
+    result = _run(survey_dir, out, "--tract", "0")
+    assert result.exit_code == 0, _said(result)
+    assert "2 built, 2 up to date, 0 failed" in result.output
+    for name in ("patch_0_1.fits", "patch_1_1.fits"):  # the same bytes as before
+        assert _sha(out / "r/tract_0" / name) == _sha(survey_dir / "reference/r/tract_0" / name)
+    with Ledger(out) as ledger:
+        assert len(ledger.records()) == 4 and len(ledger.unreadable) == 1
+
+
+def test_verify_with_a_directory_as_a_patch_fails_only_that_patch(tmp_path, survey_dir):
+    out = _copy_run(survey_dir, tmp_path)
+    patch = out / "r/tract_0/patch_1_1.fits"
+    patch.unlink()
+    patch.mkdir()
+    (patch / "keep").write_text("mine")
+    result = _run(survey_dir, out, "--verify")  # aborted the run with [Errno 21]
+    assert result.exit_code == 1
+    text = str(result.exception)
+    assert "1 patch failed" in text and f"{patch}: refused: a directory" in text, text
+    assert (patch / "keep").read_text() == "mine"
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["this_run"]["failed"]) == 1 and report["this_run"]["up_to_date"] == 3
+
+
+def test_side_files_replace_a_link_never_write_through_it(tmp_path, survey_dir):
+    from click.testing import CliRunner
+
+    from cellcoadd.cli.main import cli
+    from cellcoadd.plots import style
+
+    precious = _outside(tmp_path)
+    out = _copy_run(survey_dir, tmp_path)
+    (out / "report.json").unlink()
+    (out / "report.json").symlink_to(precious)
+    assert _run(survey_dir, out).exit_code == 0
+    assert (
+        not (out / "report.json").is_symlink() and "this_run" in (out / "report.json").read_text()
+    )
+    (tmp_path / "schemas").mkdir()
+    (tmp_path / "schemas" / "SkyMapConfig.v1.json").symlink_to(precious)
+    result = CliRunner().invoke(cli, ["schemas", "--out", str(tmp_path / "schemas")])
+    assert result.exit_code == 0, result.output
+    assert not (tmp_path / "schemas" / "SkyMapConfig.v1.json").is_symlink()
+    (tmp_path / "figure.png").symlink_to(precious)
+    style.save(style.figure(2, 2), tmp_path / "figure.png")
+    assert (tmp_path / "figure.png").read_bytes().startswith(b"\x89PNG")
+    assert precious.read_text() == "precious\n"
+
+
 # Round 4: the exposure index and `cellcoadd index` ---------------------------------------
 # Bounds checked before work (nside, pixels per footprint, the planes a gzip stream or a
 # tile-compressed HDU declares); one bad file or row fails only itself (degenerate
