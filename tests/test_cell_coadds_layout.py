@@ -25,7 +25,7 @@ from coadd_factory import (
 
 from cellcoadd.builder.patch import build_patch
 from cellcoadd.cli.storage import convert_command, info_command, patch_summary
-from cellcoadd.errors import CellCoaddFormatError
+from cellcoadd.errors import CellCoaddFormatError, ConfigError
 from cellcoadd.geometry import SkyMap
 from cellcoadd.io import api
 from cellcoadd.io.foreign.cell_coadds_layout import is_cell_coadds_file
@@ -190,6 +190,13 @@ LSST_MASK = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5, 
 #: grid-local cell ids written, in an order of our choice (the LSST writer keeps insertion)
 CELL_IDS = [(2, 1), (0, 0), (21, 21), (1, 2)]
 VISITS = [(2024112300230, "r_03", 20241123), (2024112400094, "r_03", 20241124)]
+#: APCORR columns in the order written (Rubin's writer takes them from a set: any order)
+APCORR_NAMES = ("base_GaussianFlux_instFlux", "base_PsfFlux_instFlux", "ext_gaap_0p7")
+APCORR_VALUES = {
+    (2, 1): (0.985, 1.0125, 0.97),
+    (0, 0): (0.99, 1.0, math.nan),
+    (1, 2): (0.975, 1.03125, 0.96),
+}
 
 
 def _lsst_tract_centre(tract: int) -> tuple[float, float]:
@@ -284,10 +291,11 @@ def _write_by_hand(
         "OCELL2": OUTER,
         "PSFSIZE1": PSF,
         "PSFSIZE2": PSF,
-        "INBBOX11": GRMIN[0],
-        "INBBOX12": GRMIN[1],
-        "INBBOX21": GRMIN[0] + GRID * CELL_INNER - 1,
-        "INBBOX22": GRMIN[1] + GRID * CELL_INNER - 1,
+        # MultipleCellCoadd.inner_bbox: the grid box with its edge cells' borders
+        "INBBOX11": GRMIN[0] - BORDER,
+        "INBBOX12": GRMIN[1] - BORDER,
+        "INBBOX21": GRMIN[0] + GRID * CELL_INNER - 1 + BORDER,
+        "INBBOX22": GRMIN[1] + GRID * CELL_INNER - 1 + BORDER,
         "VERSION": version,
         "TUNIT2": units,
         "TUNIT4": f"{units}**2",
@@ -333,9 +341,11 @@ def _write_by_hand(
         name="VISIT_SUMMARY",
     )
     summary.header["POLYVERT"] = 8
+    # APCORR: x, y and one float column per algorithm, a row per cell with a map (here
+    # not the cell (21, 21)); a cell without a value for an algorithm holds NaN
     apcorr = np.rec.fromrecords(
-        [(i, j, 1.0 + 0.01 * i) for i, j in CELL_IDS],
-        dtype=[("x", int), ("y", int), ("base_PsfFlux_instFlux", float)],
+        [(i, j, *APCORR_VALUES[i, j]) for i, j in CELL_IDS if (i, j) in APCORR_VALUES],
+        dtype=[("x", int), ("y", int), *((name, float) for name in APCORR_NAMES)],
     )
     primary = fits.PrimaryHDU()
     primary.header.extend(list((wcs or _tract_wcs_cards()).items()))
@@ -430,7 +440,8 @@ def test_rubin_file_round_trip_keeps_its_identity(tmp_path):
     with fits.open(source) as a, fits.open(lsst) as b:
         for key in ("SKYMAP", "INSTRUME", "FILTER", "TRACT", "PATCH_X", "PATCH_Y", "TUNIT2"):
             assert a[1].header[key] == b[1].header[key], key
-        for key in ("GRMIN1", "GRMIN2", "GRSHAPE1", "GRCELL1", "OCELL1", "INBBOX21"):
+        boxes = ("INBBOX11", "INBBOX12", "INBBOX21", "INBBOX22")
+        for key in ("GRMIN1", "GRMIN2", "GRSHAPE1", "GRCELL1", "OCELL1", *boxes):
             assert a[1].header[key] == b[1].header[key], key
         assert [h.name for h in b] == ["PRIMARY", "", *LSST_HDUS[2:]]
         visit_a, visit_b = a["VISIT"].data, b["VISIT"].data
@@ -444,11 +455,177 @@ def test_rubin_file_round_trip_keeps_its_identity(tmp_path):
         assert np.allclose(
             tract_a.wcs_pix2world(corners, 0), tract_b.wcs_pix2world(corners, 0), rtol=0, atol=1e-10
         )
-        # every cell the file holds has its (empty) aperture-correction map
-        assert len(b["APCORR"].data) == len(b[1].data)
+        # APCORR comes back as Rubin wrote it: every column, in order, every row and value
+        assert _apcorr_of(b) == _apcorr_of(a)
     reread = api.read(lsst)
     assert reread.metadata.skymap_config.name == "lsst_cells_v1"
     assert reread.metadata.observations == api.read(source).metadata.observations
+
+
+def _apcorr_of(hdus) -> tuple:
+    """``APCORR`` of an open file: column names and FITS formats in order, and the rows
+    (NaN as None, so that equal tables compare equal)."""
+    table = hdus["APCORR"]
+    columns = tuple((c.name, c.format) for c in table.columns)
+    rows = tuple(
+        tuple(None if isinstance(v, float) and math.isnan(v) else v for v in row.tolist())
+        for row in np.asarray(table.data)
+    )
+    return columns, rows
+
+
+def test_aperture_corrections_are_kept_through_every_format(tmp_path):
+    source = tmp_path / "lsst.fits"
+    _write_by_hand(source)
+    read = api.read(source)
+    corrections = read.metadata.aperture_corrections
+    assert corrections is not None and corrections.algorithms == APCORR_NAMES
+    first = (PATCH[0] * 20 - 1, PATCH[1] * 20 - 1)
+    for (i, j), values in APCORR_VALUES.items():
+        expected = {n: v for n, v in zip(APCORR_NAMES, values, strict=True) if not math.isnan(v)}
+        assert corrections.of((first[0] + i, first[1] + j)) == expected
+    assert corrections.of((first[0] + 21, first[1] + 21)) == {}  # no map: no row
+    # our own formats keep them in the metadata, and give them back to the Rubin layout
+    for name in ("ours.fits", "ours.h5"):
+        ours = api.write(read, tmp_path / name)
+        assert api.read(ours).metadata.aperture_corrections == corrections
+        back = api.write(api.read(ours), tmp_path / f"back-{name}.fits", layout="cell_coadds")
+        lsst = tmp_path / f"lsst-{name}.fits"
+        _lsst_part(back, lsst)
+        with fits.open(source) as a, fits.open(lsst) as b:
+            assert _apcorr_of(b) == _apcorr_of(a)
+            assert b["APCORR"].columns["x"].format == "K"  # int64 as Rubin's ("x", int)
+
+
+def test_a_build_without_aperture_corrections_writes_empty_maps(tmp_path, patch):
+    path = api.write(patch, tmp_path / "ours.fits", layout="cell_coadds")
+    with fits.open(path) as hdus:
+        assert [c.name for c in hdus["APCORR"].columns] == ["x", "y"]
+        assert len(hdus["APCORR"].data) == len(hdus[1].data)
+    assert api.read(path).metadata.aperture_corrections is None
+
+
+def _rubin_stitch(path, plane: str = "image", bbox=None):
+    """Stitch a cell_coadds file as lsst.cell_coadds' StitchedCoadd does (written here from
+    its documented behaviour): the area is the grid box grown by the cell border (or
+    ``bbox``, inclusive afw corners, which must lie inside it); each cell gives its inner
+    box, and the cells on the grid's first and last rows and columns also give their outer
+    border on that side. Returns the array and its lower-left tract pixel."""
+    with fits.open(path) as hdus:
+        header, data = hdus[1].header, hdus[1].data
+        inner, outer = header["GRCELL1"], header["OCELL1"]
+        pad, shape = (outer - inner) // 2, header["GRSHAPE1"]
+        gx, gy = header["GRMIN1"], header["GRMIN2"]
+        widest = (gx - pad, gy - pad, gx + shape * inner - 1 + pad, gy + shape * inner - 1 + pad)
+        x0, y0, x1, y1 = widest if bbox is None else bbox
+        assert widest[0] <= x0 <= x1 <= widest[2] and widest[1] <= y0 <= y1 <= widest[3]
+        last_i = min((x1 - gx) // inner, shape - 1)
+        last_j = min((y1 - gy) // inner, shape - 1)
+        out = np.zeros((y1 - y0 + 1, x1 - x0 + 1), dtype=data[plane].dtype)
+        for row in data:
+            i, j = (int(v) for v in row["cell_id"])
+            ox, oy = gx + i * inner - pad, gy + j * inner - pad  # outer box start
+            lo_x = ox if i == 0 else ox + pad
+            hi_x = ox + outer if i == last_i else ox + pad + inner
+            lo_y = oy if j == 0 else oy + pad
+            hi_y = oy + outer if j == last_j else oy + pad + inner
+            lo_x, lo_y, hi_x, hi_y = (
+                max(lo_x, x0),
+                max(lo_y, y0),
+                min(hi_x, x1 + 1),
+                min(hi_y, y1 + 1),
+            )
+            if lo_x >= hi_x or lo_y >= hi_y:
+                continue
+            out[lo_y - y0 : hi_y - y0, lo_x - x0 : hi_x - x0] = row[plane][
+                lo_y - oy : hi_y - oy, lo_x - ox : hi_x - ox
+            ]
+        return (
+            out,
+            (x0, y0),
+            (header["INBBOX11"], header["INBBOX12"], header["INBBOX21"], header["INBBOX22"]),
+        )
+
+
+def test_rubin_stitches_our_file_to_rubins_size(tmp_path):
+    full = make_patch(seed=5)  # every cell of the patch, border cells too
+    path = api.write(full, tmp_path / "ours.fits", layout="cell_coadds")
+    meta = full.metadata
+    outer = meta.geometry.outer_bbox  # the patch's outer box: grid box + cell border
+    with fits.open(path) as hdus:
+        header = hdus[1].header
+        inbbox = tuple(header[k] for k in ("INBBOX11", "INBBOX12", "INBBOX21", "INBBOX22"))
+    assert inbbox == (outer.x_start, outer.y_start, outer.x_stop - 1, outer.y_stop - 1)
+    default, start, _ = _rubin_stitch(path)
+    by_inbbox, start_inbbox, _ = _rubin_stitch(path, bbox=inbbox)
+    assert default.shape == by_inbbox.shape == outer.shape and start == start_inbbox
+    # as Rubin's own files: the hand-written one's INBBOX is its grid box + border
+    hand = tmp_path / "lsst.fits"
+    _write_by_hand(hand)
+    stitched, _, box = _rubin_stitch(hand, bbox=None)
+    assert stitched.shape == (GRID * CELL_INNER + 2 * BORDER,) * 2
+    assert box == (
+        GRMIN[0] - BORDER,
+        GRMIN[1] - BORDER,
+        *(g + GRID * CELL_INNER - 1 + BORDER for g in GRMIN),
+    )
+    # the stitch holds each cell's inner box, and the edge cells' outer borders
+    for cell in full.values():
+        rows, cols = cell.inner_bbox.slices_in(outer)
+        inner_rows, inner_cols = cell.inner_bbox.slices_in(cell.outer_bbox)
+        assert np.array_equal(
+            default[rows, cols], cell.image[inner_rows, inner_cols], equal_nan=True
+        )
+    corner = full[min(full, key=lambda index: (index[1], index[0]))]  # grid cell (0, 0)
+    b = meta.cell_border
+    assert np.array_equal(default[:b, :b], corner.image[:b, :b], equal_nan=True)
+    # our own stitch of the patch inner box is the middle of Rubin's
+    inner = meta.patch_inner_bbox
+    rows, cols = inner.slices_in(outer)
+    assert np.array_equal(default[rows, cols], full.stitch("image"), equal_nan=True)
+
+
+def test_a_file_without_cells_is_refused(tmp_path):
+    source, empty = tmp_path / "lsst.fits", tmp_path / "empty.fits"
+    _write_by_hand(source)
+    with fits.open(source) as hdus:
+        hdus[1] = fits.BinTableHDU(hdus[1].data[:0], header=hdus[1].header)
+        hdus.writeto(empty, checksum=True)
+    with pytest.raises(CellCoaddFormatError, match=r"empty\.fits: HDU 1 .*cell table has no rows"):
+        api.read(empty)
+
+
+def test_named_sky_maps_and_aliases(tmp_path):
+    path = tmp_path / "dc2.fits"
+    _write_by_hand(path, skymap="DC2_cells_v1")  # DESC's name for lsst_cells_v1's geometry
+    meta = api.read(path).metadata
+    assert meta.skymap_config.name == "DC2_cells_v1"
+    lsst = SkyMap.named("lsst_cells_v1").config
+    assert meta.skymap_config == lsst.model_copy(update={"name": "DC2_cells_v1"})
+    again = api.write(api.read(path), tmp_path / "again.fits", layout="cell_coadds")
+    with fits.open(again) as hdus:
+        assert hdus[1].header["SKYMAP"] == "DC2_cells_v1"
+    # a name the file does not give: read(..., skymap=...) names it
+    _write_by_hand(path, skymap="my_cells")
+    with pytest.raises(CellCoaddFormatError, match="'my_cells' is not a sky map"):
+        api.read(path)
+    named = api.read(path, skymap="lsst_cells_v1").metadata
+    assert named.skymap_config == lsst and named.tract_center == meta.tract_center
+    # a sky map of another geometry is refused, against the file's grid or its own name
+    with pytest.raises(CellCoaddFormatError, match="150 px inner, 150 px outer"):
+        api.read(path, skymap="lsst_cells_v2")
+    _write_by_hand(path, skymap="lsst_cells_v1")
+    with pytest.raises(
+        CellCoaddFormatError, match="geometry is not that of skymap='lsst_cells_v2'"
+    ):
+        api.read(path, skymap="lsst_cells_v2")
+    with pytest.raises(
+        ConfigError, match=r"unknown sky map name 'hsc'; known: DC2_cells_v1, lsst, "
+    ):
+        api.read(path, skymap="hsc")
+    ours = api.write(make_patch(seed=1), tmp_path / "ours.fits")
+    with pytest.raises(ConfigError, match="skymap applies to lsst.cell_coadds files only"):
+        api.read(ours, skymap="lsst_cells_v1")
 
 
 def test_the_wcs_must_agree_with_the_declared_sky_map(tmp_path):
@@ -486,7 +663,11 @@ def test_unknown_sky_map_without_tract_size_is_refused(tmp_path):
 def test_legacy_units_need_a_zero_point(tmp_path):
     path = tmp_path / "lsst.fits"
     _write_by_hand(path, units="legacy", version="0.6")
-    with pytest.raises(CellCoaddFormatError, match=r"TUNIT2 = 'legacy'.*no MAGZERO.*27"):
+    with pytest.raises(
+        CellCoaddFormatError,
+        match=r"TUNIT2 = 'legacy'.*no MAGZERO.*cellcoadd\.read\(path, legacy_zero_point=27\.0\)"
+        r".*--legacy-zero-point 27",
+    ):
         api.read(path)
     with CellCoaddsFile(str(path), legacy_zero_point=27.0) as opened:
         assert (opened.metadata.units, opened.metadata.zero_point) == ("count", 27.0)

@@ -15,8 +15,8 @@ import pytest
 from astropy.wcs import WCS
 from click.testing import CliRunner
 
-from cellcoadd.errors import ConfigError
-from cellcoadd.geometry import SkyMap, SkyMapConfig
+from cellcoadd.errors import CellCoaddIndexError, ConfigError
+from cellcoadd.geometry import SkyMap, SkyMapConfig, sky_ids
 
 N_RINGS = 120
 RING = math.pi / (N_RINGS + 1)
@@ -223,6 +223,11 @@ def test_ten_thousand_positions_poles_and_ra_wrap(lsst):
     np.testing.assert_array_equal(loc["patch_y"], py // PATCH)
     np.testing.assert_array_equal(loc["cell_x"], px // CELL)
     np.testing.assert_array_equal(loc["cell_y"], py // CELL)
+    # Rubin's ids: the butler's sequential patch, and the cell counted from the first cell
+    # of the patch's cell grid, whose box starts one cell below the patch's inner box
+    np.testing.assert_array_equal(loc["patch_id"], (py // PATCH) * 10 + px // PATCH)
+    np.testing.assert_array_equal(loc["rubin_cell_x"], (px - (px // PATCH * PATCH - CELL)) // CELL)
+    np.testing.assert_array_equal(loc["rubin_cell_y"], (py - (py // PATCH * PATCH - CELL)) // CELL)
 
 
 def test_known_dp1_tracts(lsst):
@@ -239,6 +244,51 @@ def test_json_round_trip_and_names(lsst):
     assert SkyMap.named("lsst_cells_v2").config.cell_border == 0
     with pytest.raises(ConfigError, match="unknown sky map name 'hsc'.*lsst_cells_v1"):
         SkyMap.named("hsc")
+
+
+def test_dc2_cells_v1_is_lsst_cells_v1_under_its_own_name(lsst):
+    dc2 = SkyMap.named("DC2_cells_v1")
+    assert dc2.config.name == "DC2_cells_v1"
+    assert dc2.config.model_copy(update={"name": "lsst_cells_v1"}) == lsst.config
+    assert dc2[5063].center == lsst[5063].center
+
+
+def test_rubin_patch_and_cell_ids(lsst):
+    tract = lsst[5063]
+    for patch in tract.patches:
+        assert lsst.patch_from_rubin_id(5063, patch.rubin_id) == patch
+    assert tract.patch(4, 3).rubin_id == 34 and tract.patch(9, 9).rubin_id == 99
+    for bad in (-1, 100):
+        with pytest.raises(CellCoaddIndexError, match=f"patch id {bad} is outside tract 5063"):
+            tract.patch_from_rubin_id(bad)
+    patch = tract.patch(4, 3)
+    first, last = patch.cell_indices[0], patch.cell_indices[-1]
+    assert patch.rubin_cell_index(first) == (0, 0) and patch.rubin_cell_index(last) == (21, 21)
+    for index in patch.cell_indices:
+        assert patch.cell_from_rubin_index(patch.rubin_cell_index(index)) == index
+    for index in patch.inner_cell_indices:  # a cell's own patch: 1 to 20
+        cell = tract.cell(*index)
+        assert cell.owner_patch == (4, 3)
+        assert cell.rubin_index == patch.rubin_cell_index(index)
+        assert all(1 <= i <= 20 for i in cell.rubin_index)
+    # a border cell has another index in the neighbour that lists it
+    border = tract.cell(*first)
+    assert border.owner_patch == (3, 2) and border.rubin_index == (20, 20)
+    with pytest.raises(CellCoaddIndexError, match=r"Rubin cell index \(22, 0\) is not a cell"):
+        patch.cell_from_rubin_index((22, 0))
+    with pytest.raises(CellCoaddIndexError, match=r"cell \(0, 0\) is not a cell of patch"):
+        patch.rubin_cell_index((0, 0))
+
+
+def test_catalogue_columns_carry_both_ids(lsst):
+    ra, dec = lsst[5063].pixel_to_sky([12345.0, 15100.0], [10000.0, 17999.0])
+    ids = sky_ids({"ra": ra, "dec": dec}, lsst)
+    assert list(ids["tract"]) == [5063, 5063]
+    assert list(ids["patch"]) == [3 * 10 + 4, 5 * 10 + 5]
+    assert (ids["cell_x"][0], ids["cell_y"][0]) == (12345 // 150, 10000 // 150)
+    # cell 82 of the tract is cell 82 - (4 * 20 - 1) = 3 of patch 4
+    assert (ids["rubin_cell_x"][0], ids["rubin_cell_y"][0]) == (3, 66 - 59)
+    assert (ids["rubin_cell_x"][1], ids["rubin_cell_y"][1]) == (1, 20)
 
 
 def test_inconsistent_explicit_tract_size_is_refused():

@@ -1,7 +1,7 @@
 """Geometry: sky map -> tract -> patch -> cell, pixel boxes, WCS helpers, catalog trimming."""
 
 from cellcoadd.geometry.box import Box
-from cellcoadd.geometry.catalog import flag_unique, trim_to_cell, trim_to_patch
+from cellcoadd.geometry.catalog import flag_unique, sky_ids, trim_to_cell, trim_to_patch
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.skymap import SkyMap, SkyMapSpec
 from cellcoadd.geometry.tract import Cell, Patch, Tract
@@ -15,6 +15,7 @@ __all__ = [
     "SkyMapSpec",
     "Tract",
     "flag_unique",
+    "sky_ids",
     "trim_to_cell",
     "trim_to_patch",
 ]

@@ -85,6 +85,42 @@ def flag_unique(
     }
 
 
+def sky_ids(
+    catalog: Any, skymap: SkyMap, *, ra: str = "ra", dec: str = "dec"
+) -> dict[str, np.ndarray]:
+    """Where each catalog row lies, in our ids and Rubin's: catalogue columns.
+
+    Parameters
+    ----------
+    catalog : structured array, astropy Table or dict of arrays
+        Must hold the sky position columns named by ``ra`` and ``dec`` (deg).
+    skymap : SkyMap
+        The sky map to place the rows on.
+    ra, dec : str
+        Column names of the positions.
+
+    Returns
+    -------
+    dict of int64 arrays
+        ``tract``; ``patch_x, patch_y`` and Rubin's ``patch`` (the butler's sequential
+        patch id, ``patch_y * nx + patch_x``); ``cell_x, cell_y`` (tract-global cell
+        index) and Rubin's ``rubin_cell_x, rubin_cell_y`` (the cell's index in its patch,
+        counted from the patch's first border cell). -1 where no tract owns the position.
+    """
+    where = skymap.locate(_column(catalog, ra), _column(catalog, dec))
+    names = {
+        "tract": "tract",
+        "patch": "patch_id",
+        "patch_x": "patch_x",
+        "patch_y": "patch_y",
+        "cell_x": "cell_x",
+        "cell_y": "cell_y",
+        "rubin_cell_x": "rubin_cell_x",
+        "rubin_cell_y": "rubin_cell_y",
+    }
+    return {column: np.asarray(where[field]).copy() for column, field in names.items()}
+
+
 def _select_rows(catalog: Any, keep: np.ndarray) -> Any:
     if isinstance(catalog, dict):
         return {name: np.asarray(values)[keep] for name, values in catalog.items()}

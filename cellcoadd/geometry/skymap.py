@@ -18,7 +18,7 @@ from cellcoadd.geometry.regions import (
     nearest_center,
     ra_slice_index,
 )
-from cellcoadd.geometry.tract import Tract
+from cellcoadd.geometry.tract import Patch, Tract
 
 LOCATION_DTYPE = np.dtype(
     [
@@ -29,19 +29,41 @@ LOCATION_DTYPE = np.dtype(
         ("cell_y", np.int64),
         ("x", np.float64),
         ("y", np.float64),
+        ("patch_id", np.int64),
+        ("rubin_cell_x", np.int64),
+        ("rubin_cell_y", np.int64),
     ]
 )
 
 
 #: Rubin's cell sky maps by their butler names: the ``SkyMapConfig`` overrides of each
 #: (Rubin's ring sky map with the ``cells`` tract builder; sources in docs/geometry.md).
+#: ``DC2_cells_v1`` is DESC's name for the geometry of ``lsst_cells_v1``; it keeps its own
+#: name (files say ``SKYMAP = 'DC2_cells_v1'``).
 LSST_SKYMAPS: dict[str, dict[str, object]] = {
     "lsst_cells_v1": {},
     "lsst_cells_v2": {"cell_border": 0},
+    "DC2_cells_v1": {},
 }
 
 #: Short names accepted wherever a sky map is named.
 SKYMAP_ALIASES = {"lsst": "lsst_cells_v1"}
+
+
+def known_skymap_names() -> list[str]:
+    """Every name :meth:`SkyMap.named` accepts, sorted (the named sky maps and aliases)."""
+    return sorted([*LSST_SKYMAPS, *SKYMAP_ALIASES])
+
+
+def is_known_skymap(name: str) -> bool:
+    """Whether :meth:`SkyMap.named` accepts ``name``."""
+    return name in LSST_SKYMAPS or name in SKYMAP_ALIASES
+
+
+def same_geometry(first: SkyMapConfig, second: SkyMapConfig) -> bool:
+    """Whether two sky-map configurations give the same tracts, patches and cells (their
+    names aside)."""
+    return first.model_dump(exclude={"name"}) == second.model_dump(exclude={"name"})
 
 
 class SkyMapSpec(BaseModel):
@@ -197,13 +219,20 @@ class SkyMap:
 
     @classmethod
     def named(cls, name: str) -> SkyMap:
-        """One of Rubin's sky maps by its butler name (``lsst_cells_v1``, ``lsst_cells_v2``;
-        ``lsst`` is ``lsst_cells_v1``). Raises ``ConfigError`` for other names."""
+        """A named cell sky map by its butler name: Rubin's ``lsst_cells_v1`` and
+        ``lsst_cells_v2``, DESC's ``DC2_cells_v1`` (the geometry of ``lsst_cells_v1``);
+        ``lsst`` is ``lsst_cells_v1``. Raises ``ConfigError`` for other names, listing the
+        known ones (:func:`known_skymap_names`)."""
         full = SKYMAP_ALIASES.get(name, name)
         if full not in LSST_SKYMAPS:
-            known = ", ".join(sorted([*LSST_SKYMAPS, *SKYMAP_ALIASES]))
-            raise ConfigError(f"unknown sky map name {name!r}; known: {known}")
+            known = ", ".join(known_skymap_names())
+            raise ConfigError(f"unknown sky map name {name!r}; known: {known}", value=name)
         return cls.lsst(SkyMapConfig.model_validate({"name": full, **LSST_SKYMAPS[full]}))
+
+    def patch_from_rubin_id(self, tract: int, patch_id: int) -> Patch:
+        """The patch of ``tract`` whose Rubin id (the butler's sequential ``patch``,
+        ``y * nx + x``) is ``patch_id``: the inverse of :attr:`Patch.rubin_id`."""
+        return self[tract].patch_from_rubin_id(patch_id)
 
     @classmethod
     def rings(cls, config: SkyMapConfig | None = None) -> SkyMap:
@@ -346,8 +375,11 @@ class SkyMap:
         Returns
         -------
         numpy structured array with fields ``tract, patch_x, patch_y, cell_x, cell_y``
-        (tract-global cell indices) and the tract pixel position ``x, y``. Positions that
-        no tract owns have ``tract = -1`` and the other indices -1.
+        (tract-global cell indices), the tract pixel position ``x, y``, and Rubin's ids:
+        ``patch_id`` (the butler's sequential patch, ``patch_y * nx + patch_x``) and
+        ``rubin_cell_x, rubin_cell_y`` (the cell's index in that patch, counted from its
+        first border cell, as lsst.cell_coadds' ``cell_id``). Positions that no tract owns
+        have ``tract = -1`` and the other indices -1.
         """
         ra = np.mod(np.atleast_1d(np.asarray(ra, dtype=float)), 360.0)
         dec = np.atleast_1d(np.asarray(dec, dtype=float))
@@ -368,8 +400,12 @@ class SkyMap:
             out["tract"][sel] = tract_id
             out["cell_x"][sel] = cx
             out["cell_y"][sel] = cy
-            out["patch_x"][sel] = cx // cfg.cells_per_patch
-            out["patch_y"][sel] = cy // cfg.cells_per_patch
+            px, py = cx // cfg.cells_per_patch, cy // cfg.cells_per_patch
+            out["patch_x"][sel] = px
+            out["patch_y"][sel] = py
+            out["patch_id"][sel] = py * cfg.patches_per_tract + px
+            out["rubin_cell_x"][sel] = cx - (px * cfg.cells_per_patch - cfg.patch_border_cells)
+            out["rubin_cell_y"][sel] = cy - (py * cfg.cells_per_patch - cfg.patch_border_cells)
             out["x"][sel] = x
             out["y"][sel] = y
         return out

@@ -18,7 +18,7 @@ import numpy as np
 from astropy.wcs import WCS
 from numpy.typing import ArrayLike
 
-from cellcoadd.errors import CellCoaddIndexError
+from cellcoadd.errors import CellCoaddIndexError, CellCoaddValueError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.config import SkyMapConfig
 from cellcoadd.geometry.regions import InnerRegion
@@ -64,6 +64,31 @@ class Cell:
     inner_bbox: Box
     outer_bbox: Box
     tract_wcs: WCS = field(repr=False, compare=False)
+    config: SkyMapConfig | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def owner_patch(self) -> tuple[int, int]:
+        """``(px, py)`` of the patch whose inner region holds this cell's inner box."""
+        per_patch = self._config.cells_per_patch
+        return (self.index[0] // per_patch, self.index[1] // per_patch)
+
+    @property
+    def rubin_index(self) -> tuple[int, int]:
+        """Rubin's patch-local cell index ``(x, y)`` of this cell in the patch that owns it
+        (:attr:`owner_patch`): counted from that patch's first border cell, so the inner
+        cells of an ``lsst_cells_v1`` patch are 1 to 20 (``Index2D`` of lsst.skymap's
+        ``CellInfo``, the ``cell_id`` of lsst.cell_coadds). In another patch that lists it
+        as a border cell it has another index: :meth:`Patch.rubin_cell_index`."""
+        return rubin_cell_index(self.index, self.owner_patch, self._config)
+
+    @property
+    def _config(self) -> SkyMapConfig:
+        if self.config is None:
+            raise CellCoaddValueError(
+                f"cell {self.index} was made without its sky-map configuration (make it with "
+                "Tract.cell)"
+            )
+        return self.config
 
     @property
     def center(self) -> tuple[int, int]:
@@ -98,6 +123,32 @@ class Cell:
         return self.inner_bbox.contains(x, y)
 
 
+def rubin_cell_index(
+    index: tuple[int, int], patch: tuple[int, int], config: SkyMapConfig
+) -> tuple[int, int]:
+    """Rubin's index ``(x, y)`` of tract-global cell ``index`` in patch ``patch``: counted
+    from the patch's first border cell, ``c - (cells_per_patch * p - patch_border_cells)``
+    along each axis (0 to ``cells_per_patch + 2 patch_border_cells - 1`` for the patch's
+    cells)."""
+    per_patch, border = config.cells_per_patch, config.patch_border_cells
+    return (
+        int(index[0]) - (per_patch * int(patch[0]) - border),
+        int(index[1]) - (per_patch * int(patch[1]) - border),
+    )
+
+
+def cell_from_rubin_index(
+    rubin_index: tuple[int, int], patch: tuple[int, int], config: SkyMapConfig
+) -> tuple[int, int]:
+    """Tract-global index of the cell with Rubin's index ``rubin_index`` in patch ``patch``
+    (the inverse of :func:`rubin_cell_index`)."""
+    per_patch, border = config.cells_per_patch, config.patch_border_cells
+    return (
+        int(rubin_index[0]) + per_patch * int(patch[0]) - border,
+        int(rubin_index[1]) + per_patch * int(patch[1]) - border,
+    )
+
+
 @dataclass(frozen=True)
 class Patch:
     """One patch of a tract: ``cells_per_patch`` squared inner cells plus border cells."""
@@ -108,6 +159,36 @@ class Patch:
     @property
     def config(self) -> SkyMapConfig:
         return self.tract.config
+
+    @property
+    def rubin_id(self) -> int:
+        """Rubin's sequential patch id, the data butler's ``patch``: ``y * nx + x`` with
+        ``nx`` the patches per tract row (e.g. 34 for patch (4, 3) of ``lsst_cells_v1``).
+        :meth:`Tract.patch_from_rubin_id` is the inverse."""
+        return self.index[1] * self.config.patches_per_tract + self.index[0]
+
+    def rubin_cell_index(self, index: tuple[int, int]) -> tuple[int, int]:
+        """Rubin's index ``(x, y)`` in this patch of the cell of tract-global ``index`` (one
+        of :attr:`cell_indices`; border cells included)."""
+        self._check_cell(index)
+        return rubin_cell_index(index, self.index, self.config)
+
+    def cell_from_rubin_index(self, rubin_index: tuple[int, int]) -> tuple[int, int]:
+        """Tract-global index of the cell with Rubin's index ``rubin_index`` in this patch."""
+        index = cell_from_rubin_index(rubin_index, self.index, self.config)
+        self._check_cell(index, given=rubin_index)
+        return index
+
+    def _check_cell(self, index: tuple[int, int], given: tuple[int, int] | None = None) -> None:
+        xs, ys = self._cell_range(self.config.patch_border_cells)
+        if index[0] not in xs or index[1] not in ys:
+            what = f"Rubin cell index {given}" if given is not None else f"cell {index}"
+            side = len(xs)
+            raise CellCoaddIndexError(
+                f"{what} is not a cell of patch {self.index} ({side} x {side} cells with "
+                "its border)",
+                value=given if given is not None else index,
+            )
 
     @property
     def inner_bbox(self) -> Box:
@@ -208,6 +289,18 @@ class Tract:
             )
         return Patch(tract=self, index=(int(px), int(py)))
 
+    def patch_from_rubin_id(self, patch_id: int) -> Patch:
+        """The patch whose Rubin id (``y * nx + x``, :attr:`Patch.rubin_id`) is ``patch_id``."""
+        n = self.config.patches_per_tract
+        if isinstance(patch_id, bool) or not 0 <= int(patch_id) < n * n:
+            raise CellCoaddIndexError(
+                f"patch id {patch_id} is outside tract {self.id} (0 to {n * n - 1})",
+                value=patch_id,
+                allowed=(0, n * n),
+            )
+        py, px = divmod(int(patch_id), n)
+        return self.patch(px, py)
+
     @property
     def patches(self) -> list[Patch]:
         n = self.config.patches_per_tract
@@ -237,6 +330,7 @@ class Tract:
             inner_bbox=inner,
             outer_bbox=inner.grow(cfg.cell_border),
             tract_wcs=self.wcs,
+            config=cfg,
         )
 
     @property

@@ -313,6 +313,7 @@ def open(
     *,
     verify: bool = True,
     legacy_zero_point: float | None = None,
+    skymap: str | None = None,
 ) -> CoaddFile:
     """Open a patch file lazily: ``.metadata``, ``.cell_indices``, ``.read_cell(index)``,
     ``.read_inputs()``; use as a context manager or call ``.close()``.
@@ -326,6 +327,12 @@ def open(
         For ``lsst.cell_coadds`` files in ``legacy`` units (counts) that do not record
         their zero point: the AB zero point to read them at (they are refused without
         it). Refused for other files.
+    skymap : str, optional
+        For ``lsst.cell_coadds`` files: the name of the sky map their cells are on
+        (``lsst_cells_v1``, ``lsst_cells_v2``, ``DC2_cells_v1``...; see
+        :meth:`~cellcoadd.geometry.SkyMap.named`), for a file whose ``SKYMAP`` keyword
+        names none cellcoadd knows; checked against the file's grid and WCS. Unknown
+        names are refused with the list of known ones; refused for other files.
 
     Raises
     ------
@@ -342,9 +349,16 @@ def open(
     gate_read(name, what="coadd file", fits=layout == "fits")
     with _fresh_cfitsio_messages(layout):
         if layout == "fits" and is_cell_coadds_file(name):  # the LSST layout, by its headers
-            return CellCoaddsFile(name, verify=verify, legacy_zero_point=legacy_zero_point)
+            return CellCoaddsFile(
+                name, verify=verify, legacy_zero_point=legacy_zero_point, skymap=skymap
+            )
         if legacy_zero_point is not None:
             raise ConfigError(f"{name}: legacy_zero_point applies to lsst.cell_coadds files only")
+        if skymap is not None:
+            raise ConfigError(
+                f"{name}: skymap applies to lsst.cell_coadds files only (cellcoadd's own "
+                "files store their sky map)"
+            )
         return _READERS[layout](name, verify=verify)
 
 
@@ -371,11 +385,12 @@ def read(
     *,
     verify: bool = True,
     legacy_zero_point: float | None = None,
+    skymap: str | None = None,
 ) -> PatchCoadd:
     """Read a whole patch coadd (see :func:`open` for the options and errors)."""
     with (
         _fresh_cfitsio_messages(file_format(path)),
-        open(path, verify=verify, legacy_zero_point=legacy_zero_point) as coadd_file,
+        open(path, verify=verify, legacy_zero_point=legacy_zero_point, skymap=skymap) as coadd_file,
     ):
         cells = {index: coadd_file.read_cell(index) for index in coadd_file.cell_indices}
         with reading_errors(coadd_file.path, "assembling the patch"):

@@ -34,6 +34,7 @@ from cellcoadd.geometry.regions import NearestCenterRegion
 from cellcoadd.geometry.tract import Patch, Tract
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.model import planes as cell_planes
+from cellcoadd.model.aperture_corrections import ApertureCorrections
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.cell_common import CellCommon
@@ -155,6 +156,9 @@ class PatchMetadata(BaseModel):
     observations : Observations or None
         Instrument, and physical filter and observing day of each visit, when known (from
         a Rubin coadd); left out of the stored JSON when None.
+    aperture_corrections : ApertureCorrections or None
+        Per-cell aperture corrections, when known (from a Rubin coadd's ``APCORR``); left
+        out of the stored JSON when None.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -179,13 +183,15 @@ class PatchMetadata(BaseModel):
     software_version: str = __version__
     format_version: str = FORMAT_VERSION
     observations: Observations | None = None
+    aperture_corrections: ApertureCorrections | None = None
 
     @model_serializer(mode="wrap")
     def _drop_unknown_observations(self, handler: Any) -> dict[str, Any]:
         # added after format 1.2: absent when unknown, so such files stay byte-identical
         data = handler(self)
-        if data.get("observations", 0) is None:
-            del data["observations"]
+        for key in ("observations", "aperture_corrections"):
+            if data.get(key, 0) is None:
+                del data[key]
         return data
 
     @field_validator("band")

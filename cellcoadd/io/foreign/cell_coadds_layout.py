@@ -46,6 +46,7 @@ from cellcoadd.io.coadd.cell_records import cell_record_json
 from cellcoadd.io.coadd.format_version import sha256_hex
 from cellcoadd.io.coadd.inputs_table import inputs_to_array
 from cellcoadd.io.foreign.mask_planes import to_rubin
+from cellcoadd.model.aperture_corrections import ApertureCorrections
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.observations import Observations
@@ -257,9 +258,24 @@ def _table_dtype(meta: PatchMetadata) -> np.dtype:
     return np.dtype(fields)
 
 
+def inner_bbox_keys(grid: CellGrid) -> tuple[int, int, int, int]:
+    """``INBBOX11, INBBOX12, INBBOX21, INBBOX22`` as Rubin writes them: the grid box grown by
+    the cell border on every side (afw's inclusive maxima).
+
+    lsst.cell_coadds' ``MultipleCellCoadd`` defaults its ``inner_bbox`` to the box from the
+    first grid cell's bounding box to the last one's, and its grid gives the cells of the
+    grid's edges their outer border: ``-200 ... 3199`` for patch (0, 0) of
+    ``lsst_cells_v1`` (the patch's outer box), not the grid box ``-150 ... 3149``.
+    """
+    gx, gy = grid.grid_min
+    border = (grid.cell_outer - grid.cell_inner) // 2
+    stop = grid.shape * grid.cell_inner - 1 + border
+    return gx - border, gy - border, gx + stop, gy + stop
+
+
 def _header_keys(meta: PatchMetadata, grid: CellGrid) -> list[dict[str, Any]]:
     gx, gy = grid.grid_min
-    stop = grid.shape * grid.cell_inner - 1  # afw boxes have inclusive maxima
+    box = inner_bbox_keys(grid)
     units = lsst_units(meta.units)
     observations = meta.observations
     instrument = observations.instrument if observations else UNKNOWN_NAME
@@ -275,10 +291,10 @@ def _header_keys(meta: PatchMetadata, grid: CellGrid) -> list[dict[str, Any]]:
         ("OCELL2", grid.cell_outer, "outer cell size y"),
         ("PSFSIZE1", meta.psf_size, "PSF image size x"),
         ("PSFSIZE2", meta.psf_size, "PSF image size y"),
-        ("INBBOX11", gx, "inner bbox min x"),
-        ("INBBOX12", gy, "inner bbox min y"),
-        ("INBBOX21", gx + stop, "inner bbox max x (inclusive)"),
-        ("INBBOX22", gy + stop, "inner bbox max y (inclusive)"),
+        ("INBBOX11", box[0], "inner bbox min x"),
+        ("INBBOX12", box[1], "inner bbox min y"),
+        ("INBBOX21", box[2], "inner bbox max x (inclusive)"),
+        ("INBBOX22", box[3], "inner bbox max y (inclusive)"),
         ("VERSION", LSST_VERSION, "lsst.cell_coadds file format version"),
         ("TUNIT2", units, "image units"),
         ("TUNIT4", f"{units}**2", "variance units"),
@@ -383,11 +399,25 @@ def _visit_tables(
     return visits, summary
 
 
-def _apcorr(stored: list[CellCoadd], grid: CellGrid) -> np.ndarray:
-    """``APCORR``: one row per stored cell and no algorithm column (no aperture
-    corrections), so the LSST reader finds a map, empty, for every cell."""
-    local = [grid.local(cell.index) for cell in stored]
-    return np.array(local, dtype=[("x", "<i8"), ("y", "<i8")])
+def _apcorr(
+    stored: list[CellCoadd], grid: CellGrid, corrections: ApertureCorrections | None
+) -> np.ndarray:
+    """``APCORR`` as Rubin writes it: ``x``, ``y`` (grid-local, int64) and one float64
+    column per algorithm, one row per cell with a map, in the order kept (NaN where a cell
+    has no value for an algorithm).
+
+    Without aperture corrections (our own builds compute none): one row per stored cell and
+    no algorithm column, so the LSST reader finds a map, empty, for every cell.
+    """
+    if corrections is None:
+        local = [grid.local(cell.index) for cell in stored]
+        return np.array(local, dtype=[("x", "<i8"), ("y", "<i8")])
+    dtype = [("x", "<i8"), ("y", "<i8")] + [(name, "<f8") for name in corrections.algorithms]
+    table = np.zeros(len(corrections.cells), dtype=dtype)
+    for row, cell in enumerate(corrections.cells):
+        values = [math.nan if value is None else value for value in cell.values]
+        table[row] = (*grid.local(cell.index), *values)
+    return table
 
 
 def _maskdef(meta: PatchMetadata) -> np.ndarray:
@@ -450,6 +480,16 @@ def check_writable(patch: PatchCoadd, path: str, stored: list[CellCoadd] | None 
             "layout cannot hold an empty patch (its reader needs at least one cell); write "
             "it in our FITS or HDF5 format",
         )
+    corrections = patch.metadata.aperture_corrections
+    if corrections is not None:
+        cells = set(patch.metadata.all_cell_indices)
+        outside = [cell.index for cell in corrections.cells if cell.index not in cells]
+        if outside:
+            raise CellCoaddFormatError(
+                path,
+                f"aperture corrections are given for cells {outside[:5]}, which are not cells "
+                f"of patch {patch.metadata.patch}",
+            )
 
 
 def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -> None:
@@ -487,7 +527,7 @@ def write_cell_coadds(patch: PatchCoadd, path: str, *, compress: bool = False) -
         _write_table(fits, visits, "VISIT", [])
         _write_table(fits, _maskdef(meta), "MASKDEF", [])
         _write_table(fits, summary, "VISIT_SUMMARY", [{"name": "POLYVERT", "value": 8}])
-        _write_table(fits, _apcorr(stored, grid), "APCORR", [])
+        _write_table(fits, _apcorr(stored, grid, meta.aperture_corrections), "APCORR", [])
         data = np.frombuffer(payload, dtype=np.uint8)
         fits.create_image_hdu(dims=data.shape, dtype=data.dtype, extname=EXT_METADATA)
         fits[-1].write(data)

@@ -23,7 +23,12 @@ from astropy.wcs import WCS
 
 from cellcoadd.errors import CellCoaddFormatError, ConfigError, DamagedDataError
 from cellcoadd.geometry.config import SkyMapConfig
-from cellcoadd.geometry.skymap import LSST_SKYMAPS, SKYMAP_ALIASES, SkyMap
+from cellcoadd.geometry.skymap import (
+    SkyMap,
+    is_known_skymap,
+    known_skymap_names,
+    same_geometry,
+)
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits.checksums import verify_hdu
@@ -45,9 +50,11 @@ from cellcoadd.io.foreign.cell_coadds_layout import (
     ZERO_POINT_KEY,
     CellGrid,
     grid_of,
+    inner_bbox_keys,
     shape_from_quadrupole,
 )
 from cellcoadd.io.foreign.mask_planes import from_rubin
+from cellcoadd.model.aperture_corrections import ApertureCorrections, CellApertureCorrection
 from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import InputRecord
@@ -88,19 +95,33 @@ class CellCoaddsFile(CoaddFile):
         AB zero point of ``legacy`` (counts) pixels, for files that do not record it
         (``MAGZERO``); such files are refused without it. Refused when the file records a
         different one.
+    skymap : str, optional
+        Name of the sky map the file's cells are on (:func:`~cellcoadd.geometry.skymap.
+        known_skymap_names`, e.g. ``DC2_cells_v1``), for a file whose ``SKYMAP`` keyword
+        names none cellcoadd knows; the file's grid and WCS are checked against it. When
+        the file names a known sky map, the two must have the same geometry. Unknown names
+        are refused with the list of known ones.
     """
 
     format_name = "cell_coadds"
 
     def __init__(
-        self, path: str, *, verify: bool = True, legacy_zero_point: float | None = None
+        self,
+        path: str,
+        *,
+        verify: bool = True,
+        legacy_zero_point: float | None = None,
+        skymap: str | None = None,
     ) -> None:
         check_fits_path(path)
         check_path_readable(path)
         if legacy_zero_point is not None and not math.isfinite(legacy_zero_point):
             raise ConfigError(f"legacy_zero_point must be finite, got {legacy_zero_point}")
+        if skymap is not None:
+            SkyMap.named(skymap)  # unknown names refused here, with the list
         self.path, self.verify = path, verify
         self.legacy_zero_point = legacy_zero_point
+        self.skymap_name = skymap
         self._raw: Any = open(path, "rb")  # for the checksums; closed by close()
         self._fits: Any = None
         self._checked: set[int] = set()
@@ -114,8 +135,16 @@ class CellCoaddsFile(CoaddFile):
             header = self._header(1)
             self.layout_version = self._check_version(header)
             self._rows, self._columns = self._read_cell_ids(header)
+            self._check_inner_bbox(header)
             if EXT_METADATA in self._numbers:
                 metadata, self._identities, self._inputs = self._read_extension(header)
+                named = skymap and SkyMap.named(skymap).config
+                if named and not same_geometry(named, metadata.skymap_config):
+                    raise self._fail(
+                        self._numbers[EXT_METADATA],
+                        f"the file's sky map ({metadata.skymap_config.name or 'unnamed'}) "
+                        f"does not have the geometry of skymap={skymap!r} given to the reader",
+                    )
                 self._tract_wcs: WCS | None = None
             else:
                 metadata = self._derive_metadata(header)
@@ -232,6 +261,12 @@ class CellCoaddsFile(CoaddFile):
             if hdu.get_nrows():
                 ids = hdu.read_column("cell_id")
             ids = np.asarray(ids).reshape(-1, 2)
+        if len(ids) == 0:
+            raise self._fail(
+                1,
+                "the cell table has no rows: an lsst.cell_coadds file holds at least one cell "
+                "(Rubin's reader cannot read one without; Rubin's builder writes none)",
+            )
         rows: dict[tuple[int, int], int] = {}
         grid = self._grid_header
         for row, (i, j) in enumerate(ids.tolist()):
@@ -355,7 +390,8 @@ class CellCoaddsFile(CoaddFile):
                     1,
                     f"TUNIT2 = 'legacy' (counts) and no {ZERO_POINT_KEY}: the zero point of the "
                     "pixels is not recorded (lsst.cell_coadds says 'typically 27'); pass it "
-                    "explicitly, e.g. CellCoaddsFile(path, legacy_zero_point=27.0)",
+                    "explicitly, e.g. cellcoadd.read(path, legacy_zero_point=27.0) (also "
+                    "cellcoadd.open), or --legacy-zero-point 27 on the command line",
                 )
             return "count", float(self.legacy_zero_point)
         if isinstance(stored, bool) or not isinstance(stored, (int, float, np.number)):
@@ -449,7 +485,7 @@ class CellCoaddsFile(CoaddFile):
         elif crpix[0] != round(crpix[0]):  # our own tracts: tangent point at the box centre
             tract_pixels = round(2.0 * crpix[0] + 1.0)
         else:
-            known = ", ".join(sorted([*LSST_SKYMAPS, *SKYMAP_ALIASES]))
+            known = ", ".join(known_skymap_names())
             raise self._fail(
                 1,
                 f"SKYMAP = {name!r} is not a sky map cellcoadd knows ({known}) and the file "
@@ -499,7 +535,10 @@ class CellCoaddsFile(CoaddFile):
         unit, zero_point = self._zero_point(header)
         wcs = self._read_tract_wcs()
         name = str(header.get("SKYMAP", "")).strip()
-        if name in LSST_SKYMAPS or name in SKYMAP_ALIASES:
+        if self.skymap_name is not None:
+            self._check_named_skymap(name)
+            config, center = self._declared_geometry(header, wcs, self.skymap_name)
+        elif is_known_skymap(name):
             config, center = self._declared_geometry(header, wcs, name)
         else:
             config, center = self._wcs_geometry(header, wcs, name)
@@ -521,7 +560,75 @@ class CellCoaddsFile(CoaddFile):
                 ),
                 software_version=f"lsst.cell_coadds (file VERSION {self.layout_version})",
                 observations=self._observations(header),
+                aperture_corrections=self._aperture_corrections(),
             )
+
+    def _check_named_skymap(self, name: str) -> None:
+        """The caller's sky map (``skymap=``) must have the geometry of the one the file
+        names, when the file names one cellcoadd knows."""
+        assert self.skymap_name is not None
+        if is_known_skymap(name) and not same_geometry(
+            SkyMap.named(name).config, SkyMap.named(self.skymap_name).config
+        ):
+            raise self._fail(
+                1,
+                f"SKYMAP = {name!r}, whose geometry is not that of skymap="
+                f"{self.skymap_name!r} given to the reader",
+            )
+
+    def _check_inner_bbox(self, header: Any) -> None:
+        """``INBBOX`` must lie in the grid box grown by the cell border (Rubin's reader
+        refuses anything else); files before the border was added say the grid box."""
+        keys = ("INBBOX11", "INBBOX12", "INBBOX21", "INBBOX22")
+        if not all(key in header for key in keys):
+            return
+        box = [self._int(header, key) for key in keys]
+        grid = self._grid_header
+        widest = inner_bbox_keys(grid)
+        if not (
+            widest[0] <= box[0] <= box[2] <= widest[2]
+            and widest[1] <= box[1] <= box[3] <= widest[3]
+        ):
+            raise self._fail(
+                1,
+                f"INBBOX ({box[0]}, {box[1]}) ... ({box[2]}, {box[3]}) is not inside the cell "
+                f"grid's box with its border ({widest[0]}, {widest[1]}) ... "
+                f"({widest[2]}, {widest[3]})",
+            )
+
+    def _aperture_corrections(self) -> ApertureCorrections | None:
+        """Every column of ``APCORR`` (None without the HDU or without an algorithm
+        column, as our own files without corrections have)."""
+        if "APCORR" not in self._numbers:
+            return None
+        number = self._numbers["APCORR"]
+        hdu = self._hdu(number)
+        with reading_errors(self.path, self._name(number)):
+            dtype = hdu.get_rec_dtype()[0]
+            names = list(dtype.names or ())
+            if "x" not in names or "y" not in names:
+                raise DamagedDataError("columns 'x' and 'y' are missing", hdu=number)
+            algorithms = [name for name in names if name not in ("x", "y")]
+            for name in algorithms:
+                if dtype[name].kind not in "fiu" or dtype[name].shape:
+                    raise DamagedDataError(f"column {name!r} is {dtype[name]}, not a number")
+            if not algorithms:
+                return None
+            table = hdu.read() if hdu.get_nrows() else np.zeros(0, dtype=dtype)
+            cells = []
+            grid = self._grid_header
+            for row, entry in enumerate(table):
+                i, j = int(entry["x"]), int(entry["y"])
+                if not (0 <= i < grid.shape and 0 <= j < grid.shape):
+                    raise DamagedDataError(f"row {row}: cell ({i}, {j}) is outside the grid")
+                values = [float(entry[name]) for name in algorithms]
+                cells.append(
+                    CellApertureCorrection(
+                        index=grid.global_index((i, j)),
+                        values=tuple(v if math.isfinite(v) else None for v in values),
+                    )
+                )
+            return ApertureCorrections(algorithms=tuple(algorithms), cells=tuple(cells))
 
     def _read_used_inputs(self, meta: PatchMetadata) -> dict[Any, list[InputRecord]]:
         number = self._named("CELL")
