@@ -24,6 +24,7 @@ from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import REJECTION_REASONS, InputRecord
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE
 
 SMALL = SkyMapConfig(
     cell_inner=8, cell_border=3, cells_per_patch=2, patch_border_cells=1, patches_per_tract=3
@@ -59,6 +60,7 @@ def make_metadata(
     band: str = "r",
     patch: tuple[int, int] = (1, 1),
     psf_corners: bool = False,
+    psf_phase: bool = False,
 ) -> PatchMetadata:
     return PatchMetadata(
         skymap_config=config,
@@ -67,7 +69,9 @@ def make_metadata(
         patch=patch,
         band=band,
         units="nJy",
-        build_config=BuildConfig(n_noise=n_noise, psf_size=psf_size, psf_corners=psf_corners),
+        build_config=BuildConfig(
+            n_noise=n_noise, psf_size=psf_size, psf_corners=psf_corners, psf_phase=psf_phase
+        ),
     )
 
 
@@ -122,6 +126,7 @@ def make_cell(
             inputs=make_records(rng, meta.band, 0, n_rejected),
             mask_bits=meta.mask_bits,
             psf_corners=meta.build_config.psf_corners,
+            psf_phase=meta.build_config.psf_phase,
         )
     shape = outer.shape
     planes = ("image", "variance", "mfrac")
@@ -136,13 +141,24 @@ def make_cell(
     if meta.build_config.psf_corners:
         corners = rng.uniform(size=(4, meta.psf_size, meta.psf_size))
         corners /= corners.sum(axis=(1, 2), keepdims=True)
+    mask = rng.integers(0, 256, size=shape, dtype=np.int32)
+    inputs = make_records(rng, meta.band, int(rng.integers(1, 4)), n_rejected)
+    phase = {}
+    if meta.build_config.psf_phase:  # drawn apart: the other planes keep their values
+        n_used = sum(record.is_used for record in inputs)
+        own = np.random.default_rng([abs(index[0]), abs(index[1]), n_used])
+        phase = {
+            "psf_phase": own.uniform(size=(n_used, PHASE_SIDE, PHASE_SIDE)).astype(np.float32),
+            "psf_maps": own.uniform(size=(n_used, len(MAP_FIELDS))),
+        }
     return CellCoadd(
         **values,
-        mask=rng.integers(0, 256, size=shape, dtype=np.int32),
+        mask=mask,
         noise=noise,
         psf=psf / psf.sum(),
         psf_corners=corners,
-        inputs=make_records(rng, meta.band, int(rng.integers(1, 4)), n_rejected),
+        **phase,
+        inputs=inputs,
         tract=meta.tract,
         index=index,
         inner_bbox=inner,
@@ -163,12 +179,19 @@ def make_patch(
     missing: tuple[tuple[int, int], ...] = (),
     arbitrary_bits: bool = True,
     psf_corners: bool = False,
+    psf_phase: bool = False,
 ) -> PatchCoadd:
     """A patch with random contents (deterministic in ``seed``); ``psf_corners``: with
-    random corner PSF stamps."""
+    random corner PSF stamps; ``psf_phase``: with random phase terms."""
     rng = np.random.default_rng(seed)
     meta = make_metadata(
-        config, n_noise=n_noise, psf_size=psf_size, band=band, patch=patch, psf_corners=psf_corners
+        config,
+        n_noise=n_noise,
+        psf_size=psf_size,
+        band=band,
+        patch=patch,
+        psf_corners=psf_corners,
+        psf_phase=psf_phase,
     )
     cells = {
         index: make_cell(meta, index, rng, empty=index in empty, arbitrary_bits=arbitrary_bits)

@@ -50,14 +50,14 @@ def test_description_is_well_formed():
 
 
 def test_model_follows_the_description():
-    patch = make_patch(n_noise=3, psf_size=7, psf_corners=True)
+    patch = make_patch(n_noise=3, psf_size=7, psf_corners=True, psf_phase=True)
     cell = next(iter(patch.values()))
     params = set(inspect.signature(CellCoadd).parameters)
     assert params - _NOT_PLANES == set(cell_planes.plane_names())
     for spec in cell_planes.PLANES:
         array = getattr(cell, spec.name)
         assert array.dtype == spec.dtype
-        assert array.shape == spec.shape(cell.shape, 3, 7)
+        assert array.shape == spec.shape(cell.shape, 3, 7, cell.n_used)
     # (the tuple keeps its historical field order: unpacking it must not change)
     assert set(CellPlanes._fields) == set(cell_planes.grid_plane_names())
     assert set(get_args(Plane)) == set(cell_planes.grid_plane_names())
@@ -75,7 +75,7 @@ def test_model_follows_the_description():
         patch.stitch("psf")  # type: ignore[arg-type]
     # equality compares every plane
     for spec in cell_planes.PLANES:
-        other = make_patch(n_noise=3, psf_size=7, psf_corners=True)
+        other = make_patch(n_noise=3, psf_size=7, psf_corners=True, psf_phase=True)
         changed = next(iter(other.values()))
         array = getattr(changed, spec.name)
         array.view(np.uint8).reshape(-1)[0] ^= 1
@@ -86,7 +86,8 @@ def test_model_follows_the_description():
     assert bare.psf_corners is None
     assert bare.plane_names == cell_planes.required_plane_names()
     assert cell.plane_names == cell_planes.plane_names()
-    assert [spec.name for spec in cell_planes.PLANES if spec.optional] == ["psf_corners"]
+    optional = ["psf_corners", "psf_phase", "psf_maps"]
+    assert [spec.name for spec in cell_planes.PLANES if spec.optional] == optional
     with_corners = copy.copy(bare)
     with_corners.psf_corners = np.stack([bare.psf] * 4)
     assert not with_corners.equals(bare) and not bare.equals(with_corners)
@@ -110,7 +111,7 @@ def test_unit_keywords_follow_the_unit_kinds():
 @pytest.mark.parametrize("n_noise, corners", [(0, False), (2, False), (2, True)])
 @pytest.mark.parametrize("compression", [None, "lossless"])
 def test_fits_files_follow_the_description(tmp_path, n_noise, corners, compression):
-    patch = make_patch(n_noise=n_noise, psf_size=5, psf_corners=corners)
+    patch = make_patch(n_noise=n_noise, psf_size=5, psf_corners=corners, psf_phase=corners)
     path = tmp_path / "patch.fits"
     api.write(patch, path, compression=compression)
     stored = [
@@ -193,7 +194,7 @@ def test_a_plane_added_to_the_description_is_written(tmp_path, monkeypatch):
         weight, name="kernel", dtype=psf_spec.dtype, stamp=True, compression="none"
     )
     monkeypatch.setattr(cell_planes, "PLANES", (*cell_planes.PLANES, weight, stamp))
-    patch = make_patch(n_noise=1, psf_size=5, psf_corners=True)
+    patch = make_patch(n_noise=1, psf_size=5, psf_corners=True, psf_phase=True)
     rng = np.random.default_rng(1)
     for cell in patch.values():  # the model has no such attributes: given by hand here
         cell.weight = rng.standard_normal(cell.shape, dtype=np.float32)  # type: ignore[attr-defined]

@@ -240,7 +240,7 @@ def test_corners_round_trip_losslessly(tmp_path, name, compression):
     path = tmp_path / name
     api.write(patch, path, compression=compression)
     back = api.read(path)
-    assert back.metadata.format_version == FORMAT_VERSION == "1.4"
+    assert back.metadata.format_version == FORMAT_VERSION
     assert back.metadata.build_config.psf_corners and back.has_psf_corners
     for index, cell in patch.items():
         assert back[index].equals(cell)

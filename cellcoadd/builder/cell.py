@@ -23,6 +23,7 @@ cell of a group whose common box holds pixels none of them could use.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -43,7 +44,14 @@ from cellcoadd.builder.kernels.descriptor import WARP_KERNEL
 from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping, footprint_box
-from cellcoadd.builder.psf import PsfError, psf_moments, warn_truncated_psfs
+from cellcoadd.builder.psf import (
+    PHASE_CORE_STEP,
+    PsfError,
+    draw_exposure_core,
+    input_map,
+    psf_moments,
+    warn_truncated_psfs,
+)
 from cellcoadd.builder.select import Candidate, Rejection, select_exposure
 from cellcoadd.errors import CellCoaddValueError, ConfigError
 from cellcoadd.geometry.box import Box
@@ -147,6 +155,9 @@ class CellBlock:
         self.records: list[list[InputRecord]] = [[] for _ in cells]
         self.jacobians = [cell_jacobian(cell) for cell in cells]
         self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
+        # per cell, the used inputs' phase terms (psf_phase), in the order of their records
+        self.phase_terms: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in cells]
+        self.cores: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _core
 
     def add(self, item: BuildInput, frame: ExposureFrame | None) -> None:
         """Consider one input for every cell: select, warp and add it where it is usable.
@@ -241,7 +252,7 @@ class CellBlock:
                 self._reject(i, exposure, found)
                 continue
             try:
-                psf_stamp = coadd_psf_contribution(cell, found, *self._psf_settings)
+                psf_stamp = self._input_psf(i, found)
             except PsfError:
                 self._reject(i, exposure, Rejection(InputStatus.BAD_PSF, found.overlap_fraction))
                 continue
@@ -283,7 +294,7 @@ class CellBlock:
         for i, found, psf_stamp in members:
             if psf_stamp is None:
                 try:
-                    psf_stamp = coadd_psf_contribution(self.cells[i], found, *self._psf_settings)
+                    psf_stamp = self._input_psf(i, found)
                 except PsfError:
                     status = Rejection(InputStatus.BAD_PSF, found.overlap_fraction)
                     self._reject(i, exposure, status)
@@ -294,10 +305,28 @@ class CellBlock:
             box = Box.enclosing([self.cells[i].outer_bbox for i, _, _ in members])
             contributions.append((box, *warped, used))
 
-    @property
-    def _psf_settings(self) -> tuple[int, bool]:
-        """Stamp size and whether the corners are drawn (:func:`coadd_psf_contribution`)."""
-        return self.config.stamp_size, self.config.psf_corners
+    def _input_psf(self, i: int, found: Candidate) -> _InputPsf:
+        """What an input gives cell ``i``'s PSF: its warped stamps
+        (:func:`coadd_psf_contribution`) and, with ``BuildConfig.psf_phase``, its phase
+        term (the oversampled PSF core at the cell centre and its ``psf_maps`` row,
+        :mod:`cellcoadd.model.psf_phase`).
+
+        Raises
+        ------
+        PsfError
+            When one of them cannot be drawn (the input is rejected for the whole cell).
+        """
+        cell, config = self.cells[i], self.config
+        stamps = coadd_psf_contribution(cell, found, config.stamp_size, config.psf_corners)
+        if not config.psf_phase:
+            return stamps, None
+        mapping = found.mapping
+        ny, nx = cell.outer_bbox.shape
+        centre = (float(mapping.x[ny // 2, nx // 2]), float(mapping.y[ny // 2, nx // 2]))
+        core = self._core(found.exposure, *centre)
+        inner = cell.inner_bbox.slices_in(cell.outer_bbox)
+        row = input_map(mapping.x, mapping.y, mapping.area_ratio, inner, found.weight)
+        return stamps, (core, row)
 
     def _warp(
         self, found: Candidate, mapping: PixelMapping, exposure: Exposure, bad_bits: int
@@ -322,11 +351,39 @@ class CellBlock:
         mask = translated_mask(exposure, footprint, self.settings.mask_bits)
         return warped_contribution(candidate, pixels, mask, self.config.n_noise)
 
-    def _accept(self, i: int, exposure: Exposure, found: Candidate, psf_stamp: np.ndarray) -> None:
+    def _core(self, exposure: Exposure, x: float, y: float) -> np.ndarray:
+        """The exposure's oversampled PSF core for a cell centred at exposure pixel
+        ``(x, y)``: drawn once per exposure and square of :data:`PHASE_CORE_STEP` detector
+        pixels, at its centre, and kept for the block's other cells there.
+
+        The core only carries how resampling changes with the phase (the stamps carry
+        the model's value where they are), so the model's change over half a square,
+        ~1e-2 in size at most, changes the PSF served by ~1e-4 of the phase term's
+        ~1e-2. The square depends on the position alone, so a cell gets the same core in
+        any block; where the model fails at the square's centre, the cell's own is drawn.
+        """
+        ox, oy = exposure.origin
+        bx = math.floor((x + ox) / PHASE_CORE_STEP)
+        by = math.floor((y + oy) / PHASE_CORE_STEP)
+        key = (exposure.visit, exposure.detector, bx, by)
+        core = self.cores.get(key)
+        if core is None:
+            node = ((bx + 0.5) * PHASE_CORE_STEP - ox, (by + 0.5) * PHASE_CORE_STEP - oy)
+            try:
+                core = draw_exposure_core(exposure, *node)
+            except PsfError:
+                return draw_exposure_core(exposure, x, y)
+            self.cores[key] = core
+        return core
+
+    def _accept(self, i: int, exposure: Exposure, found: Candidate, psf: _InputPsf) -> None:
         """Record ``exposure`` as used by cell ``i``, with its PSF stamps (centre first; its
-        pixels are added by :meth:`BlockSums.add`). The record's PSF moments are the
-        centre's."""
+        pixels are added by :meth:`BlockSums.add`) and phase term. The record's PSF
+        moments are the centre's."""
+        psf_stamp, phase = psf
         self.sums.add_psf(i, psf_stamp, found.weight)
+        if phase is not None:
+            self.phase_terms[i].append(phase)
         psf_stamp = psf_stamp[0]
         moments = psf_moments(psf_stamp, self.jacobians[i])
         # the model was drawn with unit flux: what the stamp lacks lies outside it
@@ -352,13 +409,20 @@ class CellBlock:
         for i, (cell, records) in enumerate(zip(self.cells, self.records, strict=True)):
             self.current = cell
             sums = self.sums.cell(i)
-            results.append(finish_cell(cell, sums, records, self.config, self.settings.mask_bits))
+            terms = self.phase_terms[i] if self.config.psf_phase else None
+            results.append(
+                finish_cell(cell, sums, records, self.config, self.settings.mask_bits, terms)
+            )
         return results
 
 
-#: A cell selected for an input: its index in the block, the selection, its PSF stamp
-#: (None: not drawn yet).
-_Member = tuple[int, Candidate, "np.ndarray | None"]
+#: What an input gives a cell's PSF: its warped stamps ``(n_psf, n, n)`` and its phase
+#: term (oversampled core, ``psf_maps`` row), None without ``psf_phase``.
+_InputPsf = tuple[np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]
+
+#: A cell selected for an input: its index in the block, the selection, its PSF (None:
+#: not drawn yet).
+_Member = tuple[int, Candidate, "_InputPsf | None"]
 
 
 def _part(mapping: PixelMapping, x: np.ndarray, y: np.ndarray, box: Box) -> PixelMapping:

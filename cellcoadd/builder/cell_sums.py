@@ -27,6 +27,7 @@ from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.planes import CORNER_ORDER
+from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE
 from cellcoadd.model.sources import ExposureHeader
 
 
@@ -233,9 +234,20 @@ def finish_cell(
     records: list[InputRecord],
     config: BuildConfig,
     mask_bits: MaskBits,
+    phase_terms: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> CellCoadd:
     """The coadd of ``cell`` from its sums: weighted means as float32, the PSF (and each
-    corner PSF) normalised to unit sum; an empty cell when no input was used."""
+    corner PSF) normalised to unit sum, the used inputs' ``phase_terms`` (oversampled
+    core, ``psf_maps`` row; None: not built) stacked; an empty cell when no input was
+    used."""
+    cores: np.ndarray | None = None
+    maps: np.ndarray | None = None
+    if phase_terms is not None and phase_terms and sums.weight > 0.0:
+        cores = np.stack([core for core, _ in phase_terms])
+        maps = np.stack([row for _, row in phase_terms])
+    elif phase_terms is not None:
+        cores = np.zeros((0, PHASE_SIDE, PHASE_SIDE), dtype=np.float32)
+        maps = np.zeros((0, len(MAP_FIELDS)))
     common = {
         "inputs": records,
         "tract": cell.tract,
@@ -250,6 +262,7 @@ def finish_cell(
             psf_size=config.stamp_size,
             mask_bits=mask_bits,
             psf_corners=config.psf_corners,
+            psf_phase=config.psf_phase,
             **common,
         )
     total = sums.weight
@@ -270,6 +283,8 @@ def finish_cell(
         mfrac=np.clip(sums.mfrac / total, 0.0, 1.0).astype(np.float32),
         psf=psf,
         psf_corners=corners,
+        psf_phase=cores,
+        psf_maps=maps,
         **common,
     )
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
@@ -14,6 +15,7 @@ from cellcoadd.geometry.box import Box
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.psf import PSF_FLUX_TOLERANCE
+from cellcoadd.model.psf_phase import PHASE_HALF, PHASE_OVERSAMPLING
 
 #: Smallest fraction of a PSF's unit flux its drawn stamp may hold.
 MIN_STAMP_FLUX = 0.5
@@ -50,6 +52,67 @@ def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.nd
             "the exposure's pixel scale (a profile in pixels rather than arcsec?)"
         )
     return stamp
+
+
+#: Side, detector pixels, of the squares of an exposure that share one oversampled PSF
+#: core (:meth:`cellcoadd.builder.cell.CellBlock._core`): ~2 cells of 150 coadd pixels at
+#: 0.2"/px on 0.263"/px inputs.
+PHASE_CORE_STEP = 256
+
+
+def draw_exposure_core(exposure: Exposure, x: float, y: float) -> np.ndarray:
+    """The exposure's effective PSF at exposure pixel ``(x, y)``, oversampled around the
+    source as :mod:`cellcoadd.model.psf_phase` stores it (float32, ``(m, m)``,
+    :meth:`~cellcoadd.model.psf.PsfModel.draw_core`).
+
+    Raises
+    ------
+    PsfError
+        When the model fails there or gives non-finite values or no flux.
+    """
+    ox, oy = exposure.origin
+    core = exposure.psf_model.draw_core(
+        x + ox, y + oy, exposure.local_jacobian(x, y), PHASE_HALF, PHASE_OVERSAMPLING
+    )
+    if not np.all(np.isfinite(core)) or not core.sum() > 0:
+        raise PsfError(f"PSF core drawn at ({x:.2f}, {y:.2f}) is non-finite or has no flux")
+    return core.astype(np.float32)
+
+
+def input_map(
+    x: np.ndarray, y: np.ndarray, area: np.ndarray, inner: tuple[slice, slice], weight: float
+) -> np.ndarray:
+    """An input's ``psf_maps`` row (:data:`~cellcoadd.model.psf_phase.MAP_FIELDS`).
+
+    Parameters
+    ----------
+    x, y, area : ndarray, shape of the cell's outer box
+        Exposure positions of the coadd pixels and their area ratio (the selection's
+        mapping).
+    inner : (slice, slice)
+        Rows and columns of the inner box in the outer box.
+    weight : float
+        The input's weight.
+
+    Returns
+    -------
+    ndarray, shape (8,), float64
+        The phase of the cell-centre pixel ``(nx // 2, ny // 2)``; the affine map from
+        coadd to exposure pixels fitted (least squares, every 5th pixel) over the inner
+        box with its constant at that pixel, so the centre's phase is exact; its area
+        ratio; ``weight``.
+    """
+    ny, nx = x.shape
+    cy, cx = ny // 2, nx // 2
+    rows, cols = inner
+    jj, ii = np.mgrid[rows.start : rows.stop : 5, cols.start : cols.stop : 5]
+    design = np.stack([(ii - cx).ravel(), (jj - cy).ravel()], axis=1).astype(np.float64)
+    target = np.stack([(x[jj, ii] - x[cy, cx]).ravel(), (y[jj, ii] - y[cy, cx]).ravel()], axis=1)
+    affine = np.linalg.lstsq(design, target, rcond=None)[0].T  # [[xx, xy], [yx, yy]]
+    px, py = float(x[cy, cx]), float(y[cy, cx])
+    return np.array(
+        [px - math.floor(px), py - math.floor(py), *affine.ravel(), float(area[cy, cx]), weight]
+    )
 
 
 def psf_moments(stamp: np.ndarray, jacobian: np.ndarray) -> dict[str, float]:

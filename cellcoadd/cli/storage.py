@@ -98,11 +98,17 @@ def stored_planes(meta: PatchMetadata) -> list[str]:
     per-realization planes left out when there are none, optional ones when the build
     configuration did not ask for them), then the inputs table."""
     described = []
-    optional = {"psf_corners": meta.build_config.psf_corners}
+    optional = {
+        name: bool(getattr(meta.build_config, flag))
+        for name, flag in cell_planes.optional_plane_flags().items()
+    }
     for spec in cell_planes.PLANES:
         if spec.optional and not optional.get(spec.name, False):
             continue
-        if spec.layers:
+        if spec.per_input:
+            side = "x".join(str(n) for n in spec.per_input)
+            described.append(f"{spec.name} (per used input, {side})")
+        elif spec.layers:
             described.append(f"{spec.name} ({spec.layers}x{meta.psf_size}x{meta.psf_size})")
         elif spec.per_realization:
             if meta.n_noise:

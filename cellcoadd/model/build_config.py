@@ -89,6 +89,14 @@ class BuildConfig(BaseModel):
         ``docs/shear.md``); it needs ``psf_size // 2 <= cell_border`` (each corner stamp
         lies in the outer box). Left out of the stored JSON when off, so configurations
         and files from before it keep their bytes and hashes.
+    psf_phase : bool
+        Also store each used input's resampling phase term (``CellCoadd.psf_phase`` and
+        ``psf_maps``, format 1.5: its effective PSF oversampled around the cell centre, its
+        affine map and weight, :mod:`cellcoadd.model.psf_phase`), so that
+        :meth:`CellCoadd.psf_at` gives the PSF of a star at any pixel of the cell, with
+        the phase at which each input meets it (without it the stamps hold the phases of
+        their own pixels only). Cost and accuracy: ``docs/shear.md``. Left out of the
+        stored JSON when off, like ``psf_corners``.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -120,12 +128,18 @@ class BuildConfig(BaseModel):
         description="also store the coadd PSF at the 4 corner pixels of each cell's inner box",
     )
 
+    psf_phase: bool = Field(
+        False,
+        description="also store each used input's resampling phase term, for psf_at",
+    )
+
     @model_serializer(mode="wrap")
     def _drop_psf_corners_off(self, handler: Any) -> dict[str, Any]:
-        # absent when off: configurations, hashes and files from before it are unchanged
+        # absent when off: configurations, hashes and files from before them are unchanged
         data = handler(self)
-        if data.get("psf_corners", True) is False:
-            del data["psf_corners"]
+        for flag in ("psf_corners", "psf_phase"):
+            if data.get(flag, True) is False:
+                del data[flag]
         return data
 
     @model_validator(mode="before")

@@ -18,6 +18,12 @@ Every plane covers the cell's *outer* box: ``plane[j, i]`` is tract pixel
   format 1.4), float64 ``(4, n, n)``: the coadd PSF at the 4 corner pixels of the inner
   box, like ``psf`` (:data:`~cellcoadd.model.planes.CORNER_ORDER`);
   :meth:`CellCoadd.psf_at` interpolates the PSF between them and the centre.
+* ``psf_phase``, ``psf_maps``: optional (None when the build did not ask for them, and in
+  files before format 1.5), ``(n_used, m, m)`` float32 and ``(n_used, 8)`` float64: each
+  used input's effective PSF oversampled around the cell centre, and its phase, affine
+  map, area ratio and weight (:mod:`cellcoadd.model.psf_phase`), in the order of the used
+  input records; :meth:`CellCoadd.psf_at` renders with them the PSF of a star at any
+  pixel, at the phase where each input meets it.
 
 A cell with no used input is *empty*: every float plane is NaN, the mask has ``NO_DATA``
 set everywhere (checked by :class:`~cellcoadd.model.patch_coadd.PatchCoadd`) and its
@@ -42,6 +48,7 @@ from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.planes import CORNER_ORDER, grid_plane_names, plane_names
+from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE, phase_correction
 from cellcoadd.model.units import mask_plane_cards
 from cellcoadd.model.wcs_codec import wcs_to_record
 
@@ -80,6 +87,10 @@ class CellCoadd:
         PSF stamps at the inner box's corner pixels, in the order of
         :data:`~cellcoadd.model.planes.CORNER_ORDER` (float, converted to float64); each
         sums to 1 unless the cell is empty. None (the default): not built.
+    psf_phase, psf_maps : ndarray, optional
+        Each used input's phase term, shapes ``(n_used, m, m)`` and ``(n_used, 8)``
+        (:mod:`cellcoadd.model.psf_phase`; converted to float32 and float64); both or
+        neither. None (the default): not built.
     inputs : iterable of InputRecord (or dicts)
         Every input that overlapped the cell, used or rejected.
     tract : int
@@ -119,6 +130,8 @@ class CellCoadd:
         wcs: WCS,
         common: CellCommon | None = None,
         psf_corners: np.ndarray | None = None,
+        psf_phase: np.ndarray | None = None,
+        psf_maps: np.ndarray | None = None,
     ) -> None:
         self.tract = _as_int("tract", tract)
         self.index = _as_index(index)
@@ -172,6 +185,22 @@ class CellCoadd:
         keys = [record.key for record in self.inputs]
         if len(set(keys)) != len(keys):
             raise InvalidCoaddError(f"{name}: inputs list a (visit, detector) more than once")
+        self.psf_phase: np.ndarray | None = None
+        self.psf_maps: np.ndarray | None = None
+        if (psf_phase is None) != (psf_maps is None):
+            raise InvalidCoaddError(f"{name}: psf_phase and psf_maps go together")
+        if psf_phase is not None and psf_maps is not None:
+            self.psf_phase = _float_array(name, "psf_phase", psf_phase, np.float32)
+            self.psf_maps = _float_array(name, "psf_maps", psf_maps, np.float64)
+            n_used = self.n_used
+            if self.psf_phase.shape != (n_used, PHASE_SIDE, PHASE_SIDE) or (
+                self.psf_maps.shape != (n_used, len(MAP_FIELDS))
+            ):
+                raise InvalidCoaddError(
+                    f"{name}: psf_phase and psf_maps must have shapes ({n_used}, {PHASE_SIDE}, "
+                    f"{PHASE_SIDE}) and ({n_used}, {len(MAP_FIELDS)}) for its {n_used} used "
+                    f"inputs, got {self.psf_phase.shape} and {self.psf_maps.shape}"
+                )
         self.wcs = _check_wcs(name, wcs)
         self.common: CellCommon | None = None
         if common is not None:
@@ -207,11 +236,13 @@ class CellCoadd:
         mask_bits: MaskBits | None = None,
         common: CellCommon | None = None,
         psf_corners: bool = False,
+        psf_phase: bool = False,
     ) -> CellCoadd:
         """A cell with no used input: NaN planes and PSF, ``NO_DATA`` everywhere in the mask.
 
         ``inputs`` lists the rejected inputs (none may be used); ``mask_bits`` default to
         ``common``'s; ``psf_corners``: give it NaN corner stamps too (a build that draws
+        them), else None; ``psf_phase``: give it empty phase terms (a build that stores
         them), else None.
         """
         if mask_bits is None and common is not None:
@@ -228,6 +259,8 @@ class CellCoadd:
             psf_corners=(
                 np.full((len(CORNER_ORDER), psf_size, psf_size), np.nan) if psf_corners else None
             ),
+            psf_phase=np.zeros((0, PHASE_SIDE, PHASE_SIDE), np.float32) if psf_phase else None,
+            psf_maps=np.zeros((0, len(MAP_FIELDS))) if psf_phase else None,
             inputs=inputs,
             tract=tract,
             index=index,
@@ -283,8 +316,7 @@ class CellCoadd:
         return np.array([(xs[i], ys[j]) for i, j in CORNER_ORDER], dtype=np.int64)
 
     def psf_at(self, x: float, y: float, *, extrapolate: bool = False) -> np.ndarray:
-        """The coadd PSF at array pixel ``(x, y)``, interpolated from :attr:`psf` and
-        :attr:`psf_corners`.
+        """The coadd PSF of a point source at array pixel ``(x, y)``.
 
         Parameters
         ----------
@@ -300,34 +332,41 @@ class CellCoadd:
         Returns
         -------
         ndarray, shape ``psf.shape``, float64
-            The PSF image (pixel response included) of a point source at a pixel centre
-            near ``(x, y)``, centred on the stamp's central pixel like :attr:`psf`,
-            normalised to unit sum (NaN for an empty cell). The sub-pixel offset of
-            ``(x, y)`` is not applied: like :attr:`psf`, the stamp is for a source at a
-            pixel centre.
+            The PSF image (pixel response included), centred on the stamp's central pixel
+            like :attr:`psf`, normalised to unit sum (NaN for an empty cell). At a pixel
+            centre it is the coadded image of a star there; at a sub-pixel position it is
+            the image a star would have on the stamp's central pixel with the phases at
+            which the inputs meet ``(x, y)`` (the sub-pixel shift itself is not applied).
 
         Raises
         ------
         CellCoaddValueError
-            When the cell has no :attr:`psf_corners` (built without
-            ``BuildConfig(psf_corners=True)``, or read from a file before format 1.4).
+            When the cell has neither :attr:`psf_corners` nor :attr:`psf_phase` (built
+            without ``BuildConfig(psf_corners=True)`` or ``psf_phase=True``, or read from a
+            file before format 1.4).
         CellCoaddRangeError
             When ``(x, y)`` lies outside the inner box (pixel edges included) and
             ``extrapolate`` is false, or outside the outer box.
 
         Notes
         -----
-        The stamps are combined with the weights of :func:`psf_interpolation_weights`:
-        bilinear interpolation between the corners plus a quadratic "bubble" through the
-        centre, exact for a PSF varying as ``a + b x + c y + d x y + e (x^2 + y^2)``
-        (bilinear alone is exact for the first four terms only, and would not return
-        :attr:`psf` at the centre). Accuracy: ``docs/shear.md``.
+        Two parts. *Where* the PSF models vary across the cell: the centre stamp alone,
+        or with :attr:`psf_corners` the stamps combined with the weights of
+        :func:`psf_interpolation_weights` (bilinear between the corners plus a quadratic
+        "bubble" through the centre, exact for a PSF varying as ``a + b x + c y + d x y +
+        e (x^2 + y^2)``). *How each input is resampled there*: with :attr:`psf_phase`, each
+        used input's stored core rendered at its phase at ``(x, y)`` minus the same
+        rendered at the stamps' positions (:func:`~cellcoadd.model.psf_phase.phase_correction`),
+        so the interpolated stamps lose their own phases' pattern and take that of
+        ``(x, y)``; without it that pattern, ~1e-3 to 1e-2 in size and shape on
+        undersampled inputs, is not followed. Accuracy and cost: ``docs/shear.md``.
         """
-        if self.psf_corners is None:
+        if self.psf_corners is None and self.psf_phase is None:
             raise CellCoaddValueError(
-                f"cell {self.index} of tract {self.tract} has no psf_corners (built without "
-                "BuildConfig(psf_corners=True), or read from a file before format 1.4): "
-                "psf_at needs them; cell.psf is the PSF at the centre",
+                f"cell {self.index} of tract {self.tract} has neither psf_corners nor "
+                "psf_phase (built without BuildConfig(psf_corners=True) or psf_phase=True, "
+                "or read from a file before format 1.4): psf_at needs them; cell.psf is "
+                "the PSF at the centre",
                 cell=self.index,
             )
         if extrapolate:
@@ -349,10 +388,27 @@ class CellCoadd:
                     high=hi,
                     cell=self.index,
                 )
-        weights = psf_interpolation_weights(
-            float(x), float(y), self.psf_centre, self.psf_corner_positions
-        )
-        stamp = weights[0] * self.psf + np.tensordot(weights[1:], self.psf_corners, axes=1)
+        xc, yc = self.psf_centre
+        if self.psf_corners is None:
+            weights = np.ones(1)
+            positions = [(float(xc), float(yc))]
+            stamp = self.psf.copy()
+        else:
+            weights = psf_interpolation_weights(
+                float(x), float(y), self.psf_centre, self.psf_corner_positions
+            )
+            positions = [(float(xc), float(yc))]
+            positions += [(float(px), float(py)) for px, py in self.psf_corner_positions]
+            stamp = weights[0] * self.psf + np.tensordot(weights[1:], self.psf_corners, axes=1)
+        if self.psf_phase is not None and self.psf_maps is not None and not self.is_empty:
+            stamp = stamp + phase_correction(
+                self.psf_phase,
+                self.psf_maps,
+                (float(x) - xc, float(y) - yc),
+                [(px - xc, py - yc) for px, py in positions],
+                weights,
+                self.psf.shape[0],
+            )
         return stamp / stamp.sum()
 
     @property

@@ -63,7 +63,9 @@ from cellcoadd.model.units import (
 #: files); ``BuildConfig.psf_size`` may be left out (builds record the size they used).
 #: 1.4: the optional plane ``psf_corners`` (``BuildConfig.psf_corners``; the FITS column
 #: ``HDU_PSF_CORNERS``, -1 without it; an HDF5 dataset listed in ``contents`` when stored).
-FORMAT_VERSION = "1.4"
+#: 1.5: the optional planes ``psf_phase`` and ``psf_maps`` (``BuildConfig.psf_phase``), one
+#: layer per used input (``HDU_PSF_PHASE``, ``HDU_PSF_MAPS``, as ``psf_corners``).
+FORMAT_VERSION = "1.5"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)

@@ -20,6 +20,8 @@ from typing import Literal
 
 import numpy as np
 
+from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE
+
 #: Lossless compression that suits a plane's values. ``"float_bits"`` (float32 planes):
 #: keep every IEEE-754 bit pattern (FITS: GZIP_2 float tile compression without
 #: quantization, which viewers decode to floats, plus ``CCNFBITS`` listing the non-finite
@@ -71,6 +73,10 @@ class PlaneSpec:
         For an optional plane, the boolean field of
         :class:`~cellcoadd.model.build_config.BuildConfig` that asks a build for it: a
         patch's cells hold the plane exactly when its configuration says so.
+    per_input : tuple of int
+        One layer of this shape per *used* input (in the order of the cell's used input
+        records): shape ``(n_used, *per_input)``; an empty cell has none. Only with
+        ``stamp`` (not on the cell grid).
     """
 
     name: str
@@ -83,6 +89,7 @@ class PlaneSpec:
     layers: int = 0
     optional: bool = False
     config_flag: str | None = None
+    per_input: tuple[int, ...] = ()
 
     @property
     def stored_dtype(self) -> np.dtype:
@@ -95,9 +102,14 @@ class PlaneSpec:
         inner box and stitched over a patch."""
         return not self.stamp
 
-    def shape(self, outer_shape: tuple[int, int], n_noise: int, psf_size: int) -> tuple[int, ...]:
+    def shape(
+        self, outer_shape: tuple[int, int], n_noise: int, psf_size: int, n_inputs: int = 0
+    ) -> tuple[int, ...]:
         """Array shape of the plane for a cell whose outer box has ``outer_shape`` (ny, nx),
-        with ``n_noise`` realizations and ``psf_size``-pixel PSF stamps."""
+        with ``n_noise`` realizations, ``psf_size``-pixel PSF stamps and ``n_inputs`` used
+        inputs (:attr:`per_input`)."""
+        if self.per_input:
+            return (n_inputs, *self.per_input)
         base = (psf_size, psf_size) if self.stamp else tuple(outer_shape)
         if self.layers:
             return (self.layers, *base)
@@ -171,6 +183,30 @@ PLANES: tuple[PlaneSpec, ...] = (
         layers=4,
         optional=True,
         config_flag="psf_corners",
+    ),
+    PlaneSpec(
+        "psf_phase",
+        np.dtype(np.float32),
+        per_realization=False,
+        stamp=True,
+        compression="none",
+        unit="normalised",
+        doc="each used input's effective PSF at the cell centre, oversampled (1.5)",
+        optional=True,
+        config_flag="psf_phase",
+        per_input=(PHASE_SIDE, PHASE_SIDE),
+    ),
+    PlaneSpec(
+        "psf_maps",
+        np.dtype(np.float64),
+        per_realization=False,
+        stamp=True,
+        compression="none",
+        unit="normalised",
+        doc="each used input's phase, affine map, area ratio and weight at the centre (1.5)",
+        optional=True,
+        config_flag="psf_phase",
+        per_input=(len(MAP_FIELDS),),
     ),
 )
 

@@ -155,6 +155,63 @@ class PsfModel(ABC):
             When the model cannot be evaluated there.
         """
 
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        """The effective PSF (pixel included, unit flux) at exposure pixel ``(x, y)`` as a
+        profile in exposure pixels (``x``, ``y`` axes, unit pixel scale).
+
+        Raises
+        ------
+        PsfError
+            When the model cannot be evaluated there, or (a model without a profile
+            form) never: :meth:`draw_core` then samples :meth:`draw` at each phase.
+        """
+        raise PsfError(f"{type(self).__name__} has no profile form")
+
+    def draw_core(
+        self, x: float, y: float, jacobian: np.ndarray, half: int, oversampling: int
+    ) -> np.ndarray:
+        """The effective PSF at exposure pixel ``(x, y)`` sampled ``oversampling`` times per
+        exposure pixel over ``[-half, half]`` pixels around the source.
+
+        Returns
+        -------
+        ndarray of float64, shape ``(m, m)``, ``m = 2 half oversampling + 1``
+            ``[j, i]`` the PSF at offset ``((i - c) / oversampling, (j - c) /
+            oversampling)`` exposure pixels, ``c = (m - 1) / 2``, per unit exposure-pixel
+            area: the values at whole-pixel offsets are the pixels of a star drawn there.
+            For :mod:`cellcoadd.model.psf_phase`.
+
+        Raises
+        ------
+        PsfError
+            When the model cannot be evaluated there.
+        """
+        side = 2 * half * oversampling + 1
+        try:
+            profile = self.pixel_profile(x, y, jacobian)
+        except PsfError:
+            profile = None
+        if profile is not None:
+            image = galsim.ImageD(side, side, scale=1.0 / oversampling)
+            try:
+                profile.drawImage(image=image, method="no_pixel")
+            except (galsim.GalSimError, ValueError, MemoryError) as err:
+                raise PsfError(f"the PSF could not be drawn at ({x:.2f}, {y:.2f}): {err}") from err
+            return image.array * float(oversampling**2)
+        # no profile: one draw per phase, interleaved
+        out = np.empty((side, side))
+        ix, iy = math.floor(x), math.floor(y)
+        box = Box(x_start=ix - half, x_stop=ix + half + 2, y_start=iy - half, y_stop=iy + half + 2)
+        for a in range(oversampling):
+            for b in range(oversampling):
+                # the source at (ix + 1 - a/N, iy + 1 - b/N): the stamp's column 1 + m is
+                # at offset m - half + a/N, the sample a + N m
+                cx, cy = ix + 1 - a / oversampling, iy + 1 - b / oversampling
+                stamp = self.draw(x, y, box, jacobian, center=(cx, cy))
+                n_x, n_y = len(range(a, side, oversampling)), len(range(b, side, oversampling))
+                out[b::oversampling, a::oversampling] = stamp[1 : 1 + n_y, 1 : 1 + n_x]
+        return out
+
 
 class GalSimPsf(PsfModel):
     """A GalSim profile *before* the pixel, constant or a callable of position.
@@ -188,6 +245,9 @@ class GalSimPsf(PsfModel):
         image = _stamp(box, jacobian_wcs(jacobian))
         return _draw_profile(self.at(x, y), image, x, y, center, "auto")
 
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        return _with_pixel(jacobian_wcs(jacobian).toImage(self.at(x, y)))
+
 
 class CallablePsf(PsfModel):
     """A callable ``(x, y) -> GSObject`` (arcsec, sky) whose pixel content is stated.
@@ -217,6 +277,10 @@ class CallablePsf(PsfModel):
         method = "no_pixel" if self.includes_pixel else "auto"
         image = _stamp(box, jacobian_wcs(jacobian))
         return _draw_profile(_user_profile(self.func, x, y), image, x, y, center, method)
+
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        profile = jacobian_wcs(jacobian).toImage(_user_profile(self.func, x, y))
+        return profile if self.includes_pixel else _with_pixel(profile)
 
 
 class ImagePsf(PsfModel):
@@ -248,6 +312,12 @@ class ImagePsf(PsfModel):
         stamp = galsim.Image(self.image.array, wcs=wcs)
         profile = galsim.InterpolatedImage(stamp, x_interpolant="lanczos3")
         return _draw_profile(profile, _stamp(box, wcs), x, y, center, "no_pixel")
+
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        # the stamp is on the exposure's pixels: a unit pixel scale
+        return galsim.InterpolatedImage(
+            galsim.Image(self.image.array, scale=1.0), x_interpolant="lanczos3"
+        )
 
 
 def _refuse_path(cls: type, first: object) -> None:
@@ -393,6 +463,25 @@ class PsfexPsf(_FileModel):
         super().__init__(data, source)
         self.parsed = parsed
 
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        array = self.parsed.stamp(x + 1.0, y + 1.0)
+        if not (np.all(np.isfinite(array)) and array.sum() > 0):
+            raise PsfError(
+                f"{self.source}: the PSFEx model at ({x:.2f}, {y:.2f}) does not have a "
+                "positive finite sum (polynomial evaluated far outside its fit?)"
+            )
+        try:
+            return galsim.InterpolatedImage(
+                galsim.Image(array),
+                scale=self.parsed.sample,
+                flux=1.0,
+                x_interpolant=galsim.Lanczos(3),
+            )
+        except (galsim.GalSimError, ValueError) as err:
+            raise PsfError(
+                f"{self.source}: PSFEx model failed at ({x:.2f}, {y:.2f}): {err}"
+            ) from err
+
     def draw(
         self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
     ) -> np.ndarray:
@@ -485,6 +574,11 @@ class PiffPsf(_FileModel):
         image = _stamp(box, local)
         cx, cy = center if center is not None else (x, y)
         return _draw_profile(profile, image, x, y, (cx, cy), method)
+
+
+def _with_pixel(profile: galsim.GSObject) -> galsim.GSObject:
+    """``profile`` (exposure pixels) convolved with the unit pixel."""
+    return galsim.Convolve(profile, galsim.Pixel(1.0))
 
 
 def as_psf_model(psf: object) -> PsfModel:

@@ -99,10 +99,13 @@ def check_cell_geometry(metadata: PatchMetadata, identity: dict[str, Any]) -> No
         )
 
 
-def expected_shapes(metadata: PatchMetadata, outer: Box) -> dict[str, tuple[int, ...]]:
+def expected_shapes(
+    metadata: PatchMetadata, outer: Box, n_used: int = 0
+) -> dict[str, tuple[int, ...]]:
     """Array shape of every plane (:data:`~cellcoadd.model.planes.PLANES`) of a cell with
-    outer box ``outer``."""
+    outer box ``outer`` and ``n_used`` used inputs (the planes with a layer per used input,
+    :attr:`~cellcoadd.model.planes.PlaneSpec.per_input`)."""
     return {
-        spec.name: spec.shape(outer.shape, metadata.n_noise, metadata.psf_size)
+        spec.name: spec.shape(outer.shape, metadata.n_noise, metadata.psf_size, n_used)
         for spec in planes.PLANES
     }

@@ -451,7 +451,11 @@ def _write_cell(
             # Standard WCS cards so viewers can place every pixel plane; the exact WCS is in
             # CELLINDEX.
             plane_keys += _wcs_cards(cell, records)
-        hdus.image(plane, getattr(cell, plane), name, plane_keys)
+        data = getattr(cell, plane)
+        if cell_planes.plane(plane).per_input and not len(data):
+            # no zero-size images in FITS: a cell without used inputs stores one zero layer
+            data = np.zeros((1, *data.shape[1:]), dtype=data.dtype)
+        hdus.image(plane, data, name, plane_keys)
 
 
 def _wcs_cards(cell: CellCoadd, records: WcsRecords | None = None) -> list[dict[str, Any]]:
@@ -624,7 +628,10 @@ class FitsCoaddFile(CoaddFile):
                 f"cell index row {key} describes cell {identity['index']} of tract "
                 f"{identity['tract']}",
             )
-        shapes = expected_shapes(self.metadata, identity["outer_bbox"])
+        # the inputs first: the planes with a layer per used input are sized by them
+        inputs = self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))
+        n_used = sum(record.is_used for record in inputs)
+        shapes = expected_shapes(self.metadata, identity["outer_bbox"], n_used)
         planes: dict[str, Any] = {}  # arrays, by CellCoadd field name
         columns = row.dtype.names or ()
         for spec in cell_planes.PLANES:
@@ -637,8 +644,12 @@ class FitsCoaddFile(CoaddFile):
                 continue
             if spec.optional and number == -1:  # not stored: None
                 continue
-            planes[spec.name] = self._read_plane(key, spec.name, number, shapes[spec.name])
-        inputs = self._read_inputs_hdu(key, int(row[hdu_column(cell_planes.INPUTS)]))
+            shape = shapes[spec.name]
+            if spec.per_input and not shape[0]:  # one zero layer stands for none
+                layer = self._read_plane(key, spec.name, number, (1, *shape[1:]))
+                planes[spec.name] = layer[:0]
+                continue
+            planes[spec.name] = self._read_plane(key, spec.name, number, shape)
         with reading_errors(self.path, f"cell {key} contents"):
             common = self.metadata.cell_common  # a cell read alone describes itself
             return CellCoadd(**planes, inputs=inputs, **identity, common=common)

@@ -430,7 +430,10 @@ class Hdf5CoaddFile(CoaddFile):
             )
         with reading_errors(self.path, f"cell {key} identity"):
             check_cell_geometry(self.metadata, identity)
-        shapes = expected_shapes(self.metadata, identity["outer_bbox"])
+        # the inputs first: the planes with a layer per used input are sized by them
+        inputs = self._read_inputs(key, group)
+        n_used = sum(record.is_used for record in inputs)
+        shapes = expected_shapes(self.metadata, identity["outer_bbox"], n_used)
         planes = {}
         for spec in cell_planes.PLANES:
             plane, dtype = spec.name, spec.stored_dtype
@@ -456,7 +459,6 @@ class Hdf5CoaddFile(CoaddFile):
                         cell=key,
                     )
                 planes[plane] = dataset[()]
-        inputs = self._read_inputs(key, group)
         with reading_errors(self.path, f"cell {key} contents"):
             common = self.metadata.cell_common  # a cell read alone describes itself
             return CellCoadd(**planes, inputs=inputs, **identity, common=common)
