@@ -1001,6 +1001,10 @@ def test_a_bad_ledger_row_rebuilds_only_its_patch(tmp_path, survey_dir):
     result = _run(survey_dir, out, "--tract", "0")
     assert result.exit_code == 0, _said(result)
     assert "2 built, 2 up to date, 0 failed" in result.output
+    # the run says which row it could not read, with the ledger's path
+    assert f"r tract 0 patch 0,1: unreadable ledger row: {out / 'ledger.sqlite'}: row" in (
+        result.output
+    )
     for name in ("patch_0_1.fits", "patch_1_1.fits"):  # the same bytes as before
         assert _sha(out / "r/tract_0" / name) == _sha(survey_dir / "reference/r/tract_0" / name)
     with Ledger(out) as ledger:

@@ -132,6 +132,8 @@ class Ledger:
         self.path = os.path.join(os.fspath(out_dir), LEDGER_NAME)
         #: rows :meth:`records` could not read: ``"row N"`` -> why (names the ledger)
         self.unreadable: dict[str, str] = {}
+        #: the same, for the rows whose key names a patch (that patch is built again)
+        self.unreadable_patches: dict[PatchKey, str] = {}
         # a link (SQLite would create or change its target, outside DIR), a FIFO, a device
         # or a directory in its place, or in its journal's, is refused before SQLite opens it
         path = gate_create(self.path, what="run ledger", companions=_SQLITE_COMPANIONS)
@@ -215,10 +217,12 @@ class Ledger:
             read = _read_row(*row)
             if isinstance(read, PatchRecord):
                 out[read.key] = read
-            else:
-                self.unreadable[f"row {row[0]}"] = (
-                    f"{self.path}: row {row[0]} of the patches table is unreadable: {read}"
-                )
+                continue
+            key, why = read
+            message = f"{self.path}: row {row[0]} of the patches table is unreadable: {why}"
+            self.unreadable[f"row {row[0]}"] = message
+            if key is not None:
+                self.unreadable_patches[key] = message
         return out
 
     def put(self, record: PatchRecord) -> None:
@@ -260,7 +264,7 @@ def _read_row(
     px: object,
     py: object,
     record: object,
-) -> PatchRecord | str:
+) -> PatchRecord | tuple[PatchKey | None, str]:
     """The record of a stored row, or why it cannot be read (naming its patch if known)."""
     band_text = None
     if band_type == "text" and isinstance(band, bytes):  # a blob never matches band = ?
@@ -270,23 +274,23 @@ def _read_row(
             band_text = None
     numbers = (tract, px, py)
     if band_text is None or not all(isinstance(n, int) for n in numbers):
-        return (
+        return None, (
             f"its key is not a band and three integers (band {band!r}, tract {tract!r}, "
             f"patch {px!r},{py!r}); that row is ignored: remove it"
         )
     key = PatchKey(band_text, *numbers)  # type: ignore[arg-type]
     if not isinstance(record, bytes):
-        return f"{key}: no record ({record!r}); that patch is built again"
+        return key, f"{key}: no record ({record!r}); that patch is built again"
     try:
         parsed = PatchRecord.model_validate_json(record)
     except ValueError as err:
         why = _first_error(err)
-        return f"{key}: its record is not a patch record ({why}); that patch is built again"
+        return key, f"{key}: its record is not a patch record ({why}); that patch is built again"
     if parsed.key != key:
-        return f"{key}: its record is of {parsed.key}; that patch is built again"
+        return key, f"{key}: its record is of {parsed.key}; that patch is built again"
     stem = f"{key.band}/tract_{key.tract}/patch_{key.px}_{key.py}"
     if parsed.output not in (stem + ".fits", stem + ".h5"):
-        return (
+        return key, (
             f"{key}: its record names the output {parsed.output!r}, not this patch's; that "
             "patch is built again"
         )

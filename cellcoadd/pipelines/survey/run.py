@@ -536,6 +536,9 @@ def _to_build(
                 )  # fmt: skip
             )
     ledger.put_many(immediate)
+    for key, why in ledger.unreadable_patches.items():  # said once, with the patch
+        if key in records:
+            result.warnings.setdefault(key, []).append(f"unreadable ledger row: {why}")
     # the costliest first (inputs: the cost scales with them), in a stable order
     tasks.sort(key=lambda task: (-len(task.inputs), task.key))
     return tasks, records
@@ -572,7 +575,7 @@ def _recorder(
         if outcome.ok and isinstance(summary, PatchSummary):
             result.built.append(task.key)
             if summary.warnings:
-                result.warnings[task.key] = summary.warnings
+                result.warnings.setdefault(task.key, []).extend(summary.warnings)
             update.update(
                 state=PatchState.DONE, checksum=summary.checksum, size=summary.size,
                 summary=summary,
