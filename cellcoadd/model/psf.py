@@ -440,9 +440,11 @@ class PsfexPsf(_FileModel):
     polynomials in SExtractor's 1-based ``X_IMAGE``/``Y_IMAGE``: the model is evaluated
     at ``(x + 1, y + 1)`` for 0-based ``(x, y)`` as GalSim's ``galsim.des.DES_PSFEx``
     does (Lanczos-3 interpolation of the stamp, unit flux) and drawn on the detector's
-    pixels without adding the pixel. Stamps sum to 1 within about 0.5% depending on the
-    sub-pixel phase (the resampling of PSFEx's grid); the coadd PSF is normalised after
-    averaging.
+    pixels without adding the pixel. Resampling PSFEx's grid at the pixels' sub-pixel
+    phase gives sums within about 0.5% of 1; a drawn stamp is divided by the sum over the
+    model's whole support at its phase (PSFEx models a circle of radius ``n / 2``
+    samples, plus Lanczos-3's reach: ~15 px for DECam's 25 x 25 samples), so it holds
+    unit flux less the model's own flux beyond the stamp.
 
     Parameters
     ----------
@@ -504,7 +506,22 @@ class PsfexPsf(_FileModel):
             ) from err
         # the profile is in the detector's pixels: drawn on a unit pixel scale
         image = _stamp(box, galsim.PixelScale(1.0))
-        return _draw_profile(profile, image, x, y, center, "no_pixel")
+        stamp = _draw_profile(profile, image, x, y, center, "no_pixel")
+        # PSFEx's grid resampled at the pixels' phase sums to 1 only within ~0.5%: divided
+        # by the sum over the model's whole support at that phase, a stamp lacks exactly
+        # the model's own flux beyond it (psf_flux_outside; docs/shear.md)
+        cx, cy = center if center is not None else (x, y)
+        reach = (max(array.shape) // 2 + 3) * self.parsed.sample + 1.5  # Lanczos-3 reach
+        support = Box(
+            x_start=math.floor(cx - reach),
+            x_stop=math.ceil(cx + reach) + 1,
+            y_start=math.floor(cy - reach),
+            y_stop=math.ceil(cy + reach) + 1,
+        )
+        if box.contains_box(support):
+            return stamp / stamp.sum()
+        whole = _stamp(support, galsim.PixelScale(1.0))
+        return stamp / _draw_profile(profile, whole, x, y, center, "no_pixel").sum()
 
 
 class PiffPsf(_FileModel):
