@@ -17,15 +17,26 @@ varied, all covering every moved cell):
 * ``constant``: the same Moffat everywhere: what resampling alone does (each position
   meets the exposures' pixels at another sub-pixel phase), the floor of the others.
 
+Then (``stars``, the table of ``BuildConfig.psf_phase``) unit-flux stars injected at the
+centre, edges and corners of a cell's inner box and at random positions, into 6 rotated
+0.263"/px exposures of the simulator's PSF (the steep variation of ``tests/test_psf_phase.py``
+on a Moffat of FWHM 0.9") and of the DECam PSFEx model, each star's coadded image against
+``cell.psf`` (old: the centre), ``psf_at`` with the corners alone (old) and ``psf_at``
+with the corners and the phase terms (new), and with the phase terms alone; and the CPU
+time of one ``psf_at``.
+
 Usage::
 
-    .venv/bin/python benchmarks/psf_across_cell.py            # ~1 CPU minute
+    .venv/bin/python benchmarks/psf_across_cell.py            # ~2 CPU minutes
+    .venv/bin/python benchmarks/psf_across_cell.py stars      # the star table only
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -37,6 +48,7 @@ from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
 from cellcoadd.builder.cell_sums import cell_jacobian
 from cellcoadd.builder.psf import psf_moments
 from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.tract import Cell
 from cellcoadd.io import read_psfex
 from cellcoadd.sim.psf import focal_plane_psf
 
@@ -162,7 +174,113 @@ def model_profile(kind: str) -> list[tuple[int, float, float, float, float, floa
     return rows
 
 
+#: Star positions, cell array pixels (inner box 50..199, centre 125), at least 48 px apart.
+FIXED = [("centre", (125, 125)), ("edge +x", (199, 125)), ("edge -y", (125, 50)),
+         ("edge -x", (50, 140)), ("corner ++", (199, 199)), ("corner --", (50, 50)),
+         ("corner +-", (199, 50)), ("between", (150, 180)), ("between", (80, 100))]  # fmt: skip
+HALF = 25
+
+
+def _star_exposures(kind: str, cell: Cell, stars: list[tuple[int, int]]) -> list[Exposure]:
+    out = []
+    for k in range(6):
+        centre = (250.0 + 0.3 * k, 250.0 - 0.2 * k)
+        wcs = _wcs(*cell.center_sky, *centre, angle=math.radians(23.0 * k))
+        if kind == "sim":
+            phi = 0.3 * k
+            boresight = (250.0 - 800.0 * math.cos(phi), 250.0 - 800.0 * math.sin(phi))
+            psf = focal_plane_psf(galsim.Moffat(beta=3.5, fwhm=0.9), boresight, 1000.0, 0.05, 0.01)
+            origin = (0, 0)
+        else:
+            psf = read_psfex(PSFEX_FILE)
+            origin = (1024 + 150 * k - 250, 2048 - 300 * k - 250)
+        common = dict(wcs=wcs, variance=1.0, psf=psf, visit=k, detector=12, band="r",
+                      zero_point=30.0, origin=origin)  # fmt: skip
+        blank = Exposure(image=np.zeros((500, 500)), **common)
+        image = np.zeros((500, 500))
+        for x, y in stars:
+            sky = cell.wcs.pixel_to_world_values(x, y)
+            ex, ey = (float(v) for v in wcs.world_to_pixel_values(*sky))
+            box = Box(x_start=int(ex) - 30, x_stop=int(ex) + 31, y_start=int(ey) - 30,
+                      y_stop=int(ey) + 31)  # fmt: skip
+            image[box.slices] += blank.draw_psf(ex, ey, box)
+        out.append(Exposure(image=image, **common))
+    return out
+
+
+def _separated(rng: np.random.Generator, n: int) -> list[tuple[int, int]]:
+    """``n`` random pixels of the inner box at least 55 px apart."""
+    picked: list[tuple[int, int]] = []
+    while len(picked) < n:
+        x, y = (int(v) for v in rng.integers(50, 200, size=2))
+        if all(math.hypot(x - a, y - b) >= 55 for a, b in picked):
+            picked.append((x, y))
+    return picked
+
+
+def star_table(kind: str, n_random: int = 24) -> None:
+    """Print, per star, |dT/T| and |de| = max(|de1|, |de2|) of the centre stamp, of psf_at
+    with corners only (old), with corners and phase terms (new), with phase terms only."""
+    tract = SkyMap.from_centers([(60.0, -30.0)], CONFIG)[0]
+    cell = tract.cell(0, 0)
+    jacobian = cell_jacobian(cell)
+    rng = np.random.default_rng(7)
+    groups = [[xy for _, xy in FIXED]] + [_separated(rng, 4) for _ in range(n_random // 4)]
+    names = [name for name, _ in FIXED] + ["random"] * (4 * (n_random // 4))
+    variants = {"centre psf": (True, False), "psf_at old": (True, False),
+                "psf_at new": (True, True), "phase only": (False, True)}  # fmt: skip
+    rows: list[list[tuple[float, float]]] = []
+    cost = []
+    for stars in groups:
+        inputs = _star_exposures(kind, cell, stars)
+        built = {}
+        for corners, phase in set(variants.values()):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                config = BuildConfig(n_noise=0, psf_size=2 * HALF + 1, psf_corners=corners,
+                                     psf_phase=phase)  # fmt: skip
+                built[(corners, phase)] = build_cell(cell, inputs, config)
+        for x, y in stars:
+            cut = built[(True, True)].image[y - HALF : y + HALF + 1, x - HALF : x + HALF + 1]
+            star = psf_moments(cut.astype(np.float64) / cut.sum(), jacobian)
+            row = []
+            for name, key in variants.items():
+                coadd = built[key]
+                if name == "centre psf":
+                    stamp = coadd.psf
+                else:
+                    start = time.process_time()
+                    stamp = coadd.psf_at(x, y)
+                    if name == "psf_at new":
+                        cost.append(time.process_time() - start)
+                m = psf_moments(stamp, jacobian)
+                de = max(abs(m["psf_e1"] - star["psf_e1"]), abs(m["psf_e2"] - star["psf_e2"]))
+                row.append((m["psf_T"] / star["psf_T"] - 1.0, de))
+            rows.append(row)
+    print(f"{kind}: stars against the PSF served (dT/T, max |de1|, |de2|); 6 rotated inputs")
+    print("  position     (x, y)    " + "".join(f"{name:>22}" for name in variants))
+    positions = [xy for group in groups for xy in group]
+    for name, (x, y), row in zip(names, positions, rows, strict=True):
+        cells = "".join(f"  {dt:+.1e} {de:.1e}     " for dt, de in row)
+        print(f"  {name:<10} ({x:3d}, {y:3d})  {cells}")
+    values = np.array(rows)  # (stars, variants, 2)
+    random = values[len(FIXED) :]
+    for label, part in (("max |.| all", values), ("rms random", random)):
+        if label.startswith("max"):
+            stats = np.abs(part).max(axis=0)
+        else:
+            stats = np.sqrt(np.mean(part**2, axis=0))
+        print(f"  {label:<23}" + "".join(f"  {t:.1e} {e:.1e}        " for t, e in stats))
+    print(f"  psf_at (corners + phase, 6 inputs, 51-px stamp): {1e3 * np.median(cost):.1f} ms CPU")
+
+
 def main() -> None:
+    if sys.argv[1:] == ["stars"]:
+        for kind in ("sim", "psfex"):
+            star_table(kind)
+        return
+    for kind in ("sim", "psfex"):
+        star_table(kind)
     for kind in ("constant", "sim", "psfex"):
         print(f'{kind}, coadd PSF of moved cells: d (coadd px at 0.2"), dT/T, de1, de2')
         for direction, d, dT, de1, de2 in profile(kind):

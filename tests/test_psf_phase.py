@@ -20,7 +20,7 @@ from cellcoadd import BuildConfig, Exposure, SkyMap, SkyMapConfig, build_cell
 from cellcoadd.builder.cell_sums import cell_jacobian
 from cellcoadd.builder.patch import build_patch
 from cellcoadd.builder.psf import psf_moments
-from cellcoadd.errors import CellCoaddValueError, InvalidCoaddError
+from cellcoadd.errors import CellCoaddRangeError, CellCoaddValueError, InvalidCoaddError
 from cellcoadd.geometry.box import Box
 from cellcoadd.geometry.tract import Cell
 from cellcoadd.io import api, read_psfex
@@ -285,3 +285,16 @@ def test_files_of_format_1_4_read_without_phase_terms(tmp_path, monkeypatch, nam
         assert back[index].equals(cell) and back[index].psf_phase is None
     cell, x, y = back[(1, 1)], 6.3, 7.0
     np.testing.assert_array_equal(cell.psf_at(x, y), patch[(1, 1)].psf_at(x, y))
+
+
+def test_the_stitched_patch_serves_the_psf_of_the_cell_there():
+    patch = _phase_patch()
+    box, side = patch.patch_inner_bbox, patch.metadata.cell_inner
+    for x, y in ((3.0, 4.0), (side + 2.4, 1.0), (2 * side - 0.6, 2 * side - 0.6)):
+        index = ((int(x + 0.5) + box.x_start) // side, (int(y + 0.5) + box.y_start) // side)
+        cell = patch[index]
+        outer = cell.outer_bbox
+        local = (x + box.x_start - outer.x_start, y + box.y_start - outer.y_start)
+        np.testing.assert_array_equal(patch.psf_at(x, y), cell.psf_at(*local))
+    with pytest.raises(CellCoaddRangeError, match="outside the stitched patch"):
+        patch.psf_at(-1.0, 0.0)

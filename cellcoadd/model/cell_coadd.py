@@ -48,7 +48,7 @@ from cellcoadd.model.cell_common import CellCommon
 from cellcoadd.model.inputs import InputRecord
 from cellcoadd.model.maskbits import MaskBits
 from cellcoadd.model.planes import CORNER_ORDER, grid_plane_names, plane_names
-from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE, phase_correction
+from cellcoadd.model.psf_phase import MAP_FIELDS, PHASE_SIDE, PhaseRenderer
 from cellcoadd.model.units import mask_plane_cards
 from cellcoadd.model.wcs_codec import wcs_to_record
 
@@ -187,6 +187,8 @@ class CellCoadd:
             raise InvalidCoaddError(f"{name}: inputs list a (visit, detector) more than once")
         self.psf_phase: np.ndarray | None = None
         self.psf_maps: np.ndarray | None = None
+        # psf_at's renders of the phase terms at the stored stamps (made on first use)
+        self._phase_renderer: tuple[tuple[object, ...], PhaseRenderer] | None = None
         if (psf_phase is None) != (psf_maps is None):
             raise InvalidCoaddError(f"{name}: psf_phase and psf_maps go together")
         if psf_phase is not None and psf_maps is not None:
@@ -401,14 +403,19 @@ class CellCoadd:
             positions += [(float(px), float(py)) for px, py in self.psf_corner_positions]
             stamp = weights[0] * self.psf + np.tensordot(weights[1:], self.psf_corners, axes=1)
         if self.psf_phase is not None and self.psf_maps is not None and not self.is_empty:
-            stamp = stamp + phase_correction(
-                self.psf_phase,
-                self.psf_maps,
-                (float(x) - xc, float(y) - yc),
-                [(px - xc, py - yc) for px, py in positions],
-                weights,
-                self.psf.shape[0],
-            )
+            renderer = self._phase_renderer
+            # the stamps' positions and the arrays rendered: a changed plane is rendered anew
+            references = [(px - xc, py - yc) for px, py in positions]
+            key = (tuple(references), self.psf_phase, self.psf_maps)
+            if renderer is None or not (
+                renderer[0][0] == key[0] and renderer[0][1] is key[1] and renderer[0][2] is key[2]
+            ):
+                renderer = (
+                    key,
+                    PhaseRenderer(self.psf_phase, self.psf_maps, references, self.psf.shape[0]),
+                )
+                self._phase_renderer = renderer  # kept: each further position costs less
+            stamp = stamp + renderer[1].correction((float(x) - xc, float(y) - yc), weights)
         return stamp / stamp.sum()
 
     @property

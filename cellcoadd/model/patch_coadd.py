@@ -542,6 +542,42 @@ class PatchCoadd(Mapping[tuple[int, int], CellCoadd]):
         """
         return Stitched(self.stitch(plane, noise_index), self.stitch_wcs, self.patch_inner_bbox)
 
+    def psf_at(self, x: float, y: float, *, extrapolate: bool = False) -> np.ndarray:
+        """The coadd PSF of a point source at pixel ``(x, y)`` of the stitched arrays.
+
+        ``(x, y)`` are array pixels of :meth:`stitch` (``(0, 0)`` is tract pixel
+        ``(x_start, y_start)`` of :attr:`patch_inner_bbox`, pixel centres at integers); the
+        PSF is that of the inner cell whose inner box holds the position
+        (:meth:`CellCoadd.psf_at`, whose accuracy and requirements apply).
+
+        Raises
+        ------
+        CellCoaddRangeError
+            When ``(x, y)`` lies outside the patch's inner box.
+        CellCoaddValueError
+            When the cell there is not stored, or cannot give a PSF away from its centre
+            (:meth:`CellCoadd.psf_at`).
+        """
+        box, side = self.patch_inner_bbox, self.metadata.cell_inner
+        tx, ty = float(x) + box.x_start, float(y) + box.y_start
+        for axis, value, low, n in (("x", x, -0.5, box.nx), ("y", y, -0.5, box.ny)):
+            if not low <= value < n - 0.5:
+                raise CellCoaddRangeError(
+                    f"{axis} = {value} is outside the stitched patch [{low}, {n - 0.5})",
+                    value=value,
+                    low=low,
+                    high=n - 0.5,
+                )
+        index = (math.floor((tx + 0.5) / side), math.floor((ty + 0.5) / side))
+        cell = self.cells.get(index)
+        if cell is None:
+            raise CellCoaddValueError(
+                f"cell {index}, which holds stitched pixel ({x}, {y}), is not stored",
+                cell=index,
+            )
+        outer = cell.outer_bbox
+        return cell.psf_at(tx - outer.x_start, ty - outer.y_start, extrapolate=extrapolate)
+
     def to_nddata(
         self,
         index: tuple[int, int],

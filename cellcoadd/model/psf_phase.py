@@ -46,7 +46,7 @@ import numpy as np
 PHASE_OVERSAMPLING = 4
 #: Half side of the stored effective PSF, exposure pixels (its core: beyond it the PSF is
 #: well sampled and its warp changes with the phase far below 1e-4).
-PHASE_HALF = 12
+PHASE_HALF = 8
 #: Side of a stored effective PSF, samples.
 PHASE_SIDE = 2 * PHASE_HALF * PHASE_OVERSAMPLING + 1
 #: Columns of ``psf_maps``: phase ``(fx, fy)`` of the cell-centre pixel in exposure pixels;
@@ -77,8 +77,21 @@ def _axis_weights(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return base.astype(np.int64) - 2, weights
 
 
+def prefiltered(core: np.ndarray) -> np.ndarray:
+    """``core`` as the cubic B-spline coefficients :func:`render_input` interpolates
+    (computed once per core, e.g. for many positions of one cell)."""
+    from scipy import ndimage
+
+    return np.asarray(ndimage.spline_filter(np.asarray(core, dtype=np.float64), order=3))
+
+
 def render_input(
-    core: np.ndarray, row: np.ndarray, phase: tuple[float, float], size: int
+    core: np.ndarray,
+    row: np.ndarray,
+    phase: tuple[float, float],
+    size: int,
+    *,
+    is_prefiltered: bool = False,
 ) -> np.ndarray:
     """One input's PSF on the coadd grid for a source at exposure phase ``phase``.
 
@@ -92,6 +105,8 @@ def render_input(
         Sub-pixel position ``(fx, fy)`` of the source in the exposure, pixels in [0, 1).
     size : int
         Side of the coadd stamp (odd), centred on the source's coadd pixel.
+    is_prefiltered : bool
+        ``core`` is already :func:`prefiltered`.
 
     Returns
     -------
@@ -110,8 +125,9 @@ def render_input(
     ix = (k[None, :] - fx) * n + centre
     iy = (k[:, None] - fy) * n + centre
     grid_y, grid_x = np.broadcast_arrays(iy, ix)
+    coefficients = core if is_prefiltered else prefiltered(core)
     pixels = ndimage.map_coordinates(
-        np.asarray(core, dtype=np.float64), [grid_y, grid_x], order=3, mode="constant", cval=0.0
+        coefficients, [grid_y, grid_x], order=3, mode="constant", cval=0.0, prefilter=False
     )
     # a point source of unit flux at every phase, as a PSF model draws it (a model
     # sampled on its own grid, e.g. PSFEx, sums to 1 only within ~0.5% at other phases)
@@ -151,6 +167,50 @@ def input_phase(row: np.ndarray, dx: float, dy: float) -> tuple[float, float]:
     return float(px - np.floor(px)), float(py - np.floor(py))
 
 
+class PhaseRenderer:
+    """The phase terms of one cell, ready to render at many positions.
+
+    Keeps each input's :func:`prefiltered` core and its renders at the stored stamps'
+    positions (``references``, offsets from the cell-centre pixel), which every position
+    subtracts: a position then costs one render per input.
+    """
+
+    def __init__(
+        self,
+        cores: np.ndarray,
+        maps: np.ndarray,
+        references: Sequence[tuple[float, float]],
+        size: int,
+    ) -> None:
+        self.maps = np.asarray(maps, dtype=np.float64)
+        self.size = size
+        self.cores = [prefiltered(core) for core in cores]
+        self.references = np.array(
+            [
+                [
+                    render_input(core, row, input_phase(row, rx, ry), size, is_prefiltered=True)
+                    for rx, ry in references
+                ]
+                for core, row in zip(self.cores, self.maps, strict=True)
+            ]
+        ).reshape(len(self.cores), len(references), size, size)
+
+    def correction(self, offset: tuple[float, float], reference_weights: np.ndarray) -> np.ndarray:
+        """:func:`phase_correction` at ``offset`` with the references interpolated with
+        ``reference_weights``."""
+        total = np.zeros((self.size, self.size))
+        weights = self.maps[:, 7] if len(self.maps) else np.zeros(0)
+        if not len(self.maps) or not weights.sum() > 0:
+            return total
+        for core, row, w, refs in zip(self.cores, self.maps, weights, self.references, strict=True):
+            term = render_input(
+                core, row, input_phase(row, *offset), self.size, is_prefiltered=True
+            )
+            term -= np.tensordot(reference_weights, refs, axes=1)
+            total += w * term
+        return total / weights.sum()
+
+
 def phase_correction(
     cores: np.ndarray,
     maps: np.ndarray,
@@ -179,25 +239,18 @@ def phase_correction(
         ``sum_i w_i [R_i(offset) - sum_k b_k R_i(reference_k)] / sum_i w_i``, ``R_i`` of
         :func:`render_input` at the input's phase of each position (zero without inputs).
     """
-    total = np.zeros((size, size))
-    weights = maps[:, 7]
-    if not len(maps) or not weights.sum() > 0:
-        return total
-    for core, row, w in zip(cores, maps, weights, strict=True):
-        term = render_input(core, row, input_phase(row, *offset), size)
-        for (rx, ry), b in zip(references, reference_weights, strict=True):
-            if b != 0.0:
-                term -= b * render_input(core, row, input_phase(row, rx, ry), size)
-        total += w * term
-    return total / weights.sum()
+    renderer = PhaseRenderer(cores, maps, references, size)
+    return renderer.correction(offset, np.asarray(reference_weights, dtype=np.float64))
 
 
 __all__ = [
     "MAP_FIELDS",
+    "PhaseRenderer",
     "PHASE_HALF",
     "PHASE_OVERSAMPLING",
     "PHASE_SIDE",
     "input_phase",
     "phase_correction",
+    "prefiltered",
     "render_input",
 ]
