@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import sys
 
+import astropy.units as u
 import numpy as np
 import pytest
 from coadd_factory import make_patch
@@ -160,7 +161,7 @@ def test_refusals(patch: PatchCoadd) -> None:
         to_lsst_images(patch, mode="tiles")  # type: ignore[arg-type]
     coadd = to_lsst_images(patch)
     del coadd.metadata["cellcoadd.format"]
-    with pytest.raises(InvalidCoaddError, match="not written by cellcoadd"):
+    with pytest.raises(InvalidCoaddError, match="no cellcoadd metadata.*sky map 'cellcoadd'"):
         from_lsst_images(coadd)
     other = make_patch(seed=4, patch=(0, 1))
     mixed = {**to_lsst_images(patch, "per_cell"), (9, 9): to_lsst_images(other, "per_cell")[0, 3]}
@@ -181,3 +182,199 @@ def test_lsst_images_command_line_reads_our_export(patch: PatchCoadd, tmp_path) 
     described = CliRunner().invoke(main, ["describe", str(path)])
     assert described.exit_code == 0, described.output
     assert "SATURATED" in described.output and "COSMIC_RAY" in described.output
+
+
+# ---------------------------------------------------------------------- coadds made by Rubin
+#
+# A stitched coadd as Rubin's pipelines hand it out through lsst-images: on lsst_cells_v1,
+# tract 5063, patch (4, 3) (Rubin's patch id 34), with the patch's cell grid, Rubin's
+# (legacy) mask planes, a provenance, aperture corrections and no cellcoadd metadata. It
+# covers 2 x 2 inner cells; cell (81, 61) has no PSF (missing).
+
+RUBIN_TRACT, RUBIN_PATCH = 5063, (4, 3)
+RUBIN_CELLS = [(80, 60), (81, 60), (80, 61), (81, 61)]
+RUBIN_MISSING = (81, 61)
+RUBIN_PSF = 7
+
+
+def rubin_coadd(skymap_name: str = "lsst_cells_v1", tract: int = RUBIN_TRACT):
+    from cellcoadd.geometry import SkyMap
+
+    images = lsst.images
+    cells = lsst.images.cells
+    rng = np.random.default_rng(11)
+    lsst_map = SkyMap.named("lsst_cells_v1")
+    side = 150
+    grid_box = images.Box.factory[
+        (60 - 1) * side : (80 + 1) * side, (80 - 1) * side : (100 + 1) * side
+    ]
+    grid = cells.CellGrid(bbox=grid_box, cell_shape=images.YX(y=side, x=side))
+    bbox = images.Box.factory[60 * side : 62 * side, 80 * side : 82 * side]
+    missing = cells.CellIJ(i=RUBIN_MISSING[1] - 59, j=RUBIN_MISSING[0] - 79)
+    bounds = cells.CellGridBounds(grid=grid, bbox=bbox, missing=frozenset({missing}))
+    psf = rng.uniform(size=(2, 2, RUBIN_PSF, RUBIN_PSF))
+    psf /= psf.sum(axis=(2, 3), keepdims=True)
+    psf[1, 1] = np.nan
+    planes = list(lsst.images.get_legacy_non_cell_coadd_mask_planes().values())
+    schema = images.MaskSchema(planes)
+    mask = images.Mask(0, schema=schema, bbox=bbox)
+    for plane in ("DETECTION_EDGE", "SENSOR_EDGE", "DETECTED", "INTERPOLATED"):
+        mask.set(plane, rng.uniform(size=(2 * side, 2 * side)) < 0.1)
+    image = rng.standard_normal((2 * side, 2 * side)).astype(np.float32)
+    tract_box = images.Box.factory[0:30000, 0:30000]
+    frame = images.TractFrame(skymap=skymap_name, tract=tract, bbox=tract_box)
+    projection = images.SkyProjection.from_fits_wcs(
+        lsst_map[tract].wcs, frame, pixel_bounds=tract_box
+    )
+    provenance_type = cells.CoaddProvenance
+    inputs = provenance_type.make_empty_input_table(2)
+    for n, (visit, detector) in enumerate([(2025111500123, 94), (2025111600042, 11)]):
+        inputs["instrument"][n] = "LSSTCam"
+        inputs["visit"][n] = visit
+        inputs["detector"][n] = detector
+        inputs["physical_filter"][n] = "r_57"
+        inputs["day_obs"][n] = 20251115 + n
+        inputs["polygon"][n] = images.Polygon.from_box(bbox)
+    contributions = provenance_type.make_empty_contribution_table(3)
+    rows = [((0, 0), 2025111500123, 94, 0.75), ((0, 1), 2025111600042, 11, 1.25)]
+    rows.append(((1, 0), 2025111500123, 94, 0.5))
+    for n, ((i, j), visit, detector, weight) in enumerate(rows):
+        contributions["cell_i"][n] = 1 + i  # on the grid, which starts at cell (79, 59)
+        contributions["cell_j"][n] = 1 + j
+        contributions["instrument"][n] = "LSSTCam"
+        contributions["visit"][n] = visit
+        contributions["detector"][n] = detector
+        contributions["overlaps_center"][n] = True
+        contributions["overlap_fraction"][n] = 1.0
+        contributions["unmasked_fraction"][n] = 1.0
+        contributions["weight"][n] = weight
+        contributions["psf_shape_xx"][n] = 3.0
+        contributions["psf_shape_yy"][n] = 2.0
+        contributions["psf_shape_xy"][n] = 0.25
+        contributions["psf_shape_flag"][n] = False
+    apcorr = np.array([[0.98, 0.99], [1.01, np.nan]])
+    coadd = cells.CellCoadd(
+        images.Image(image, bbox=bbox, unit=u.nJy),
+        mask=mask,
+        variance=images.Image(np.full_like(image, 4.0), bbox=bbox, unit=u.nJy**2),
+        noise_realizations=[images.Image(image[::-1].copy(), bbox=bbox, unit=u.nJy)],
+        sky_projection=projection,
+        band="r",
+        psf=cells.CellPointSpreadFunction(psf, bounds),
+        patch=cells.PatchDefinition(
+            id=34,
+            index=images.YX(y=3, x=4),
+            inner_bbox=images.Box.factory[9000:12000, 12000:15000],
+            cells=grid,
+        ),
+        provenance=provenance_type(inputs=inputs, contributions=contributions),
+        aperture_corrections={"base_PsfFlux_instFlux": cells.CellField(bounds, apcorr)},
+    )
+    return coadd, {"image": image, "psf": psf, "mask": mask, "apcorr": apcorr}
+
+
+def test_a_coadd_made_by_rubin_is_imported(tmp_path) -> None:
+    from cellcoadd.geometry import SkyMap
+
+    coadd, made = rubin_coadd()
+    lsst_map = SkyMap.named("lsst_cells_v1")
+    for patch in (from_lsst_images(coadd), from_lsst_images(_written(coadd, tmp_path))):
+        meta = patch.metadata
+        assert meta.skymap_config == lsst_map.config and meta.skymap_config.name == "lsst_cells_v1"
+        assert (meta.tract, meta.patch) == (RUBIN_TRACT, RUBIN_PATCH)
+        assert meta.tract_center == lsst_map[RUBIN_TRACT].center
+        assert meta.geometry.rubin_id == 34
+        assert (meta.units, meta.n_noise, meta.psf_size, meta.band) == ("nJy", 1, RUBIN_PSF, "r")
+        assert meta.software_version.startswith("unknown")
+        # Rubin's planes under our names: SENSOR_EDGE is ours EDGE... unless Rubin's
+        # DETECTION_EDGE is there too: then it is Rubin's EDGE, SENSOR_EDGE kept
+        bits = meta.mask_bits.bits
+        assert {"EDGE", "SENSOR_EDGE", "INTRP", "CR", "SAT", "DETECTED", "NO_DATA"} <= set(bits)
+        assert sorted(patch) == sorted(set(RUBIN_CELLS) - {RUBIN_MISSING})
+        for cx, cy in patch:
+            cell = patch[cx, cy]
+            rows = slice((cy - 60) * 150, (cy - 59) * 150)
+            cols = slice((cx - 80) * 150, (cx - 79) * 150)
+            inner_rows, inner_cols = cell.inner_bbox.slices_in(cell.outer_bbox)
+            assert np.array_equal(cell.image[inner_rows, inner_cols], made["image"][rows, cols])
+            assert np.isnan(cell.image[0, 0]) and np.isnan(cell.mfrac).all()  # unknown
+            assert np.array_equal(cell.psf, made["psf"][cy - 60, cx - 80])
+            detection = made["mask"].get("DETECTION_EDGE")[rows, cols]
+            ours = cell.mask[inner_rows, inner_cols] & meta.mask_bits.value("EDGE") != 0
+            assert np.array_equal(ours, detection)
+        assert [(r.visit, r.detector, r.weight) for r in patch[80, 60].inputs] == [
+            (2025111500123, 94, 0.75)
+        ]
+        record = patch[81, 60].inputs[0]
+        assert record.psf_T == pytest.approx(5.0 * 0.04) and np.isnan(record.zero_point)
+        assert meta.observations is not None and meta.observations.instrument == "LSSTCam"
+        assert [v.day_obs for v in meta.observations.visits] == [20251115, 20251116]
+        corrections = meta.aperture_corrections
+        assert corrections is not None and corrections.algorithms == ("base_PsfFlux_instFlux",)
+        assert corrections.of((80, 61)) == {"base_PsfFlux_instFlux": 1.01}
+    # exported again: lsst-images' names, Rubin's EDGE as DETECTION_EDGE (not EDGE)
+    back = to_lsst_images(patch)
+    names = set(back.mask.schema.names)
+    assert {"DETECTION_EDGE", "SENSOR_EDGE", "INTERPOLATED", "COSMIC_RAY"} <= names
+    assert "EDGE" not in names and "INTRP" not in names
+    assert back.aperture_corrections["base_PsfFlux_instFlux"].value_in_cell(
+        lsst.images.cells.CellIJ(i=61 - 59, j=80 - 79)
+    ) == pytest.approx(1.01)
+    assert from_lsst_images(back).metadata == patch.metadata
+
+
+def _written(coadd, tmp_path):
+    path = tmp_path / "rubin.fits"
+    coadd.write(str(path))
+    return path
+
+
+def test_a_rubin_coadd_needs_a_known_sky_map_that_agrees() -> None:
+    coadd, _ = rubin_coadd(skymap_name="hsc_rings_v1")
+    with pytest.raises(InvalidCoaddError, match="'hsc_rings_v1'.*DC2_cells_v1, lsst"):
+        from_lsst_images(coadd)
+    coadd, _ = rubin_coadd(tract=RUBIN_TRACT + 1)  # the frame says 5064, the WCS is 5064's
+    with pytest.raises(InvalidCoaddError, match="patch id 34 is patch|disagrees"):
+        from_lsst_images(_relabelled(coadd, RUBIN_TRACT))
+
+
+def _relabelled(coadd, tract: int):
+    """``coadd`` with its frame's tract changed (its WCS kept)."""
+    images = lsst.images
+    frame = images.TractFrame(
+        skymap="lsst_cells_v1", tract=tract, bbox=coadd.sky_projection.pixel_bounds
+    )
+    wcs = coadd.sky_projection.as_fits_wcs(coadd.sky_projection.pixel_bounds)
+    projection = images.SkyProjection.from_fits_wcs(wcs, frame, pixel_bounds=frame.bbox)
+    return lsst.images.cells.CellCoadd(
+        coadd.image,
+        mask=coadd.mask,
+        variance=coadd.variance,
+        noise_realizations=list(coadd.noise_realizations),
+        sky_projection=projection,
+        band=coadd.band,
+        psf=coadd.psf,
+        patch=coadd.patch,
+        provenance=coadd.provenance,
+    )
+
+
+def test_cell_edges_on_request(patch: PatchCoadd) -> None:
+    from cellcoadd.model.stitched import cell_edge_mask
+
+    coadd = to_lsst_images(patch, cell_edges=2)
+    edges = coadd.mask.get("CELL_EDGE")
+    side = patch.metadata.cell_inner
+    box = patch.patch_inner_bbox
+    assert edges.shape == box.shape
+    offset_x = (np.arange(box.x_start, box.x_stop) % side)[np.newaxis, :]
+    offset_y = (np.arange(box.y_start, box.y_stop) % side)[:, np.newaxis]
+    expected = (offset_x < 2) | (offset_x >= side - 2) | (offset_y < 2) | (offset_y >= side - 2)
+    assert np.array_equal(edges, expected)
+    assert np.array_equal(cell_edge_mask(patch, width=2), expected)
+    back = from_lsst_images(coadd)  # the plane is dropped again
+    assert_stitched_equal(back, patch)
+    assert "CELL_EDGE" not in back.metadata.mask_bits.bits
+    assert "CELL_EDGE" not in to_lsst_images(patch).mask.schema.names
+    with pytest.raises(ValueError, match="cell_edges applies to mode='stitched'"):
+        to_lsst_images(patch, mode="per_cell", cell_edges=1)

@@ -48,20 +48,27 @@ from astropy.wcs import WCS
 
 from cellcoadd.errors import (
     CellCoaddFormatError,
+    CellCoaddIncompatibleValuesError,
     CellCoaddTypeError,
     CellCoaddValueError,
     InvalidCoaddError,
     MissingDependencyError,
 )
 from cellcoadd.geometry.box import Box
+from cellcoadd.geometry.skymap import SkyMap, is_known_skymap, known_skymap_names
+from cellcoadd.geometry.tract import Patch
 from cellcoadd.geometry.wcs_utils import shifted_wcs
 from cellcoadd.io._files.path_gate import gate_read
-from cellcoadd.io.foreign.mask_planes import rubin_description, to_rubin
+from cellcoadd.io.foreign.cell_coadds_layout import shape_from_quadrupole
+from cellcoadd.io.foreign.mask_planes import from_rubin, rubin_description, to_rubin
+from cellcoadd.model.aperture_corrections import ApertureCorrections, CellApertureCorrection
+from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.inputs import FLOAT_FIELDS, InputRecord
-from cellcoadd.model.maskbits import MaskBits
-from cellcoadd.model.observations import Observations
+from cellcoadd.model.maskbits import MAX_BITS, MaskBits
+from cellcoadd.model.observations import Observations, VisitInfo
 from cellcoadd.model.patch_coadd import PatchCoadd, PatchMetadata
+from cellcoadd.model.stitched import CELL_EDGE, cell_edge_mask
 from cellcoadd.model.wcs_codec import wcs_from_record, wcs_to_record
 
 Mode = Literal["stitched", "per_cell"]
@@ -89,10 +96,17 @@ KEY_CELL_WCS = "cellcoadd.cell_wcs"
 KEY_CELL = "cellcoadd.cell_index"
 KEY_INNER = "cellcoadd.inner_bbox"
 KEY_INPUTS = "cellcoadd.inputs"
+#: Width of the ``CELL_EDGE`` plane added on export (absent without it).
+KEY_CELL_EDGES = "cellcoadd.cell_edges"
 _KEY_MFRAC = "cellcoadd.mfrac"
 
 #: Version of the ``cellcoadd.*`` metadata layout.
 LSST_IMAGES_FORMAT = 1
+
+_CELL_EDGE_DESCRIPTION = (
+    "Outermost pixels of a cell's inner region, where the coadd (and its PSF) changes from "
+    "one cell to the next."
+)
 
 _MFRAC_DESCRIPTION = (
     "Fraction of the coadd weight that came from masked (interpolated) input pixels, "
@@ -210,12 +224,16 @@ def _plane_names(bits: MaskBits) -> dict[str, str]:
     return {name: by_bit[bit] for name, bit in bits.bits.items()}
 
 
-def mask_schema(images: Any, bits: MaskBits) -> Any:
+def mask_schema(images: Any, bits: MaskBits, *, cell_edges: bool = False) -> Any:
     # plane at overall index b = our bit b, so the bit layout is ours; names are Rubin's
     names = _plane_names(bits)
     planes: list[Any] = [None] * (max(bits.bits.values()) + 1)
     for name, bit in bits.bits.items():
         planes[bit] = images.MaskPlane(names[name], rubin_description(name))
+    if cell_edges:
+        if CELL_EDGE in names.values():
+            raise CellCoaddValueError(f"the coadd already has a mask plane named {CELL_EDGE}")
+        planes.append(images.MaskPlane(CELL_EDGE, _CELL_EDGE_DESCRIPTION))
     return images.MaskSchema(planes)
 
 
@@ -226,16 +244,39 @@ def to_lsst_mask(images: Any, mask: np.ndarray, schema: Any, bits: MaskBits, bbo
     return out
 
 
-def from_lsst_mask(mask: Any, bits: MaskBits) -> np.ndarray:
-    """Our int32 mask from lsst-images planes named as :func:`mask_schema` names ``bits``."""
+def from_lsst_mask(mask: Any, bits: MaskBits, *, derived: tuple[str, ...] = ()) -> np.ndarray:
+    """Our int32 mask from lsst-images planes named as :func:`mask_schema` names ``bits``
+    (the planes ``derived`` from the others, e.g. ``CELL_EDGE``, left out)."""
     ours = {plane: name for name, plane in _plane_names(bits).items()}
-    unknown = sorted(set(mask.schema.names) - set(ours))
+    names = [plane for plane in mask.schema.names if plane not in derived]
+    unknown = sorted(set(names) - set(ours))
     if unknown:
         raise InvalidCoaddError(f"lsst-images mask planes {unknown} have no cellcoadd bit")
     out = np.zeros(mask.array.shape[:2], dtype=np.int32)
-    for plane in mask.schema.names:
+    for plane in names:
         out |= mask.get(plane).astype(np.int32) << bits.bits[ours[plane]]
     return out
+
+
+def _aperture_correction_fields(
+    images: Any, meta: PatchMetadata, bounds: Any, shape: tuple[int, ...], first: tuple[int, int]
+) -> dict[str, Any] | None:
+    """lsst-images ``aperture_corrections`` (one ``CellField`` per algorithm, NaN where a
+    cell has none) of the cells of ``bounds``' subgrid: ``shape`` (rows, columns) from the
+    cell ``first`` = (cy, cx)."""
+    corrections = meta.aperture_corrections
+    if corrections is None:
+        return None
+    fields = {}
+    for k, name in enumerate(corrections.algorithms):
+        array = np.full(shape, np.nan, dtype=np.float64)
+        for cell in corrections.cells:
+            i, j = cell.index[1] - first[0], cell.index[0] - first[1]
+            value = cell.values[k]
+            if 0 <= i < shape[0] and 0 <= j < shape[1] and value is not None:
+                array[i, j] = value
+        fields[name] = images.cells.CellField(bounds, array)
+    return fields
 
 
 def lsst_image(images: Any, array: np.ndarray, bbox: Any, unit: u.UnitBase | None) -> Any:
@@ -352,7 +393,7 @@ def common_metadata(meta: PatchMetadata, mode: Mode, zero_point: float | None) -
 # export
 
 
-def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
+def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched", *, cell_edges: int = 0) -> Any:
     """Convert a patch coadd to lsst-images.
 
     Parameters
@@ -364,6 +405,11 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
         inner cells (missing and empty cells marked missing). ``"per_cell"``: a dict
         ``{(cx, cy): lsst.images.cells.CellCoadd}``, each covering one cell's outer box,
         lossless.
+    cell_edges : int
+        ``"stitched"`` only: with a positive width, pixels, a ``CELL_EDGE`` mask plane
+        (the next bit after ours) flags that many outermost pixels of every cell's inner
+        box, as Rubin's ``StitchedCoadd.set_cell_edges`` does; :func:`from_lsst_images`
+        drops it again. 0: no such plane.
 
     Returns
     -------
@@ -391,13 +437,23 @@ def to_lsst_images(patch: PatchCoadd, mode: Mode = "stitched") -> Any:
             value=mode,
             allowed=("stitched", "per_cell"),
         )
+    if isinstance(cell_edges, bool) or not isinstance(cell_edges, int) or cell_edges < 0:
+        raise CellCoaddValueError(
+            f"cell_edges must be a width in pixels (0: none), got {cell_edges!r}",
+            value=cell_edges,
+        )
+    if cell_edges and mode != "stitched":
+        raise CellCoaddIncompatibleValuesError(
+            "cell_edges applies to mode='stitched' (per-cell coadds have no cell edges inside)",
+            values={"mode": mode, "cell_edges": cell_edges},
+        )
     images = lsst_images_module()
     if mode == "stitched":
-        return _to_stitched(images, patch)
+        return _to_stitched(images, patch, cell_edges)
     return {index: _to_single_cell(images, patch, cell) for index, cell in patch.cells.items()}
 
 
-def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
+def _to_stitched(images: Any, patch: PatchCoadd, cell_edges: int = 0) -> Any:
     meta = patch.metadata
     unit, zero_point = export_unit(meta)
     side = meta.cell_inner
@@ -437,11 +493,14 @@ def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
     bounds = cells_api.CellGridBounds(grid=grid, bbox=bbox, missing=frozenset(missing))
     tract_wcs = patch_tract_wcs(patch)
     projection = tract_sky_projection(images, meta, tract_wcs)
-    schema = mask_schema(images, meta.mask_bits)
+    schema = mask_schema(images, meta.mask_bits, cell_edges=bool(cell_edges))
     provenance = input_provenance(images, used, meta.skymap_config.pixel_scale, meta.observations)
+    mask = to_lsst_mask(images, patch.stitch("mask"), schema, meta.mask_bits, bbox)
+    if cell_edges:
+        mask.set(CELL_EDGE, cell_edge_mask(patch, inner, cell_edges))
     coadd = cells_api.CellCoadd(
         lsst_image(images, patch.stitch("image"), bbox, unit),
-        mask=to_lsst_mask(images, patch.stitch("mask"), schema, meta.mask_bits, bbox),
+        mask=mask,
         variance=lsst_image(images, patch.stitch("variance"), bbox, unit**2),
         mask_fractions={MFRAC_KEY: lsst_image(images, patch.stitch("mfrac"), bbox, None)},
         noise_realizations=[
@@ -452,8 +511,13 @@ def _to_stitched(images: Any, patch: PatchCoadd) -> Any:
         psf=cells_api.CellPointSpreadFunction(psf, bounds),
         patch=lsst_patch_definition(images, meta, grid),
         provenance=provenance,
+        aperture_corrections=_aperture_correction_fields(
+            images, meta, bounds, psf.shape[:2], (i_min + cy0, j_min + cx0)
+        ),
     )
     coadd.metadata.update(common_metadata(meta, "stitched", zero_point))
+    if cell_edges:
+        coadd.metadata[KEY_CELL_EDGES] = cell_edges
     coadd.metadata[KEY_TRACT_WCS] = json.dumps(wcs_to_record(tract_wcs))
     coadd.metadata[KEY_INPUTS] = json.dumps(inputs_json)
     return coadd
@@ -515,13 +579,23 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
         their inner regions exact and their outer borders NaN with ``NO_DATA`` set; cells
         marked missing that had inputs come back empty.
 
+        A coadd made by Rubin's pipelines (no ``cellcoadd.*`` metadata): the geometry is
+        that of the sky map it names (``SkyMap.named``: ``lsst_cells_v1``...), checked
+        against its WCS and cell grid; every cell of the patch whose inner box it covers
+        and whose PSF it has, as for stitched input; the used inputs from its provenance
+        (their zero points unknown: NaN), the instrument and visits, the aperture
+        corrections, mask planes under our names. What it does not say is recorded as
+        unknown: ``mfrac`` NaN without a ``mfrac`` mask fraction, ``software_version``
+        ``"unknown (Rubin lsst-images coadd)"``.
+
     Raises
     ------
     ImportError
         If lsst-images is not installed.
     InvalidCoaddError
-        If the coadd was not written by cellcoadd (no ``cellcoadd.*`` metadata) or the
-        coadds mix patches.
+        If the coadds mix patches, or a coadd made by Rubin's pipelines (no
+        ``cellcoadd.*`` metadata) is not on a named cell sky map cellcoadd knows, has
+        no patch definition, is not in nJy or disagrees with its sky map.
     CellCoaddFormatError
         If a path is a cellcoadd file, a ``.h5``/``.hdf5`` name or not an lsst-images name.
     """
@@ -538,6 +612,8 @@ def from_lsst_images(obj: Any) -> PatchCoadd:
             f"expected an lsst.images.cells.CellCoadd, a mapping of them or a path, "
             f"got {type(obj).__name__}"
         )
+    if obj.metadata.get(KEY_FORMAT) is None:
+        return _from_rubin(images, obj)  # made by Rubin's pipelines
     mode = _metadata_of(obj)[KEY_MODE]
     if mode == "per_cell":
         return _from_per_cell([obj])
@@ -676,7 +752,8 @@ def _from_stitched(coadd: Any) -> PatchCoadd:
     image = _float32(coadd.image)
     variance = _float32(coadd.variance)
     mfrac = _float32(coadd.mask_fractions[MFRAC_KEY])
-    mask = from_lsst_mask(coadd.mask, meta.mask_bits)
+    derived = (CELL_EDGE,) if metadata.get(KEY_CELL_EDGES) else ()
+    mask = from_lsst_mask(coadd.mask, meta.mask_bits, derived=derived)
     noise = _noise(coadd, image.shape)
     no_data = meta.mask_bits.value("NO_DATA")
     bounds = coadd.psf.bounds
@@ -730,3 +807,231 @@ def _embed(stitched: np.ndarray, patch_box: Box, inner: Box, outer: Box, fill: f
     out = np.full((*stitched.shape[:-2], *outer.shape), fill, dtype=stitched.dtype)
     out[..., dst_rows, dst_cols] = stitched[..., src_rows, src_cols]
     return out
+
+
+# ----------------------------------------------------------------------------------------
+# coadds made by Rubin's pipelines
+
+#: ``software_version`` recorded for a coadd made by Rubin (lsst-images does not say which).
+RUBIN_SOFTWARE = "unknown (Rubin lsst-images coadd)"
+#: Largest disagreement, pixels, between a Rubin coadd's sky projection and its named sky
+#: map's tract WCS at the corners of the coadd's box.
+WCS_TOLERANCE = 1e-3
+
+
+def _rubin_geometry(coadd: Any) -> tuple[Patch, str]:
+    """The sky-map patch of a Rubin coadd, from the sky map it names, checked against its
+    patch definition, cell grid and sky projection."""
+    name = coadd.skymap
+    if name is None or not is_known_skymap(str(name)):
+        raise InvalidCoaddError(
+            f"this lsst-images coadd has no cellcoadd metadata (made by Rubin's pipelines?) "
+            f"and is on sky map {name!r}, which cellcoadd does not know by name "
+            f"({', '.join(known_skymap_names())}): its geometry cannot be derived",
+            value=name,
+        )
+    skymap = SkyMap.named(str(name))
+    config = skymap.config
+    definition = coadd.patch
+    if definition is None:
+        raise InvalidCoaddError("this lsst-images coadd has no patch definition")
+    tract_id = int(coadd.tract)
+    patch = skymap.patch_from_rubin_id(tract_id, int(definition.id))
+    index = (int(definition.index.x), int(definition.index.y))
+    if index != patch.index:
+        raise InvalidCoaddError(
+            f"patch id {definition.id} is patch {patch.index} of {name}, but the coadd's "
+            f"patch index is {index}",
+            value=index,
+        )
+    grid = coadd.psf.bounds.grid
+    side = config.cell_inner
+    shape = (int(grid.cell_shape.y), int(grid.cell_shape.x))
+    if shape != (side, side) or grid.bbox.x.start % side or grid.bbox.y.start % side:
+        raise InvalidCoaddError(
+            f"the coadd's cells are {shape} px from ({grid.bbox.x.start}, "
+            f"{grid.bbox.y.start}); {name} has {side}-px cells from the tract origin",
+            value=shape,
+        )
+    box = coadd.bbox
+    xs = np.array([box.x.start, box.x.stop - 1, box.x.start, box.x.stop - 1], dtype=float)
+    ys = np.array([box.y.start, box.y.start, box.y.stop - 1, box.y.stop - 1], dtype=float)
+    sky = coadd.sky_projection.pixel_to_sky(x=xs, y=ys)
+    tract = patch.tract
+    x, y = tract.sky_to_pixel(np.asarray(sky.ra.deg), np.asarray(sky.dec.deg))
+    off = float(np.max(np.hypot(x - xs, y - ys)))
+    if not off <= WCS_TOLERANCE:
+        raise InvalidCoaddError(
+            f"the coadd's sky projection disagrees with {name} tract {tract_id}: the corners "
+            f"of its box are {off:.4g} px from where the sky map puts them",
+            value=off,
+        )
+    return patch, str(name)
+
+
+def _rubin_mask_bits(schema: Any) -> tuple[MaskBits, dict[str, str]]:
+    """Our mask bits for an lsst-images mask schema (plane position = bit) and the
+    lsst-images plane name of each of our names."""
+    rubin = {plane.name: bit for bit, plane in enumerate(schema) if plane is not None}
+    too_high = sorted(name for name, bit in rubin.items() if bit >= MAX_BITS)
+    if too_high:
+        raise InvalidCoaddError(
+            f"mask planes {too_high} are at bits beyond cellcoadd's 0..{MAX_BITS - 1}",
+            value=too_high,
+        )
+    ours = from_rubin(rubin, "lsst_images")
+    by_bit = {bit: name for name, bit in rubin.items()}
+    planes = {name: by_bit[bit] for name, bit in ours.items()}
+    if "NO_DATA" not in ours:
+        ours["NO_DATA"] = min(set(range(MAX_BITS)) - set(ours.values()))
+    return MaskBits(bits=ours), planes
+
+
+def _rubin_inputs(
+    coadd: Any, first: tuple[int, int], band: str, scale: float
+) -> tuple[dict[tuple[int, int], list[InputRecord]], Observations | None]:
+    """Used inputs of each cell (tract-global index) and the observations, from the
+    coadd's provenance."""
+    provenance = coadd.provenance
+    if provenance is None:
+        return {}, None
+    inputs: dict[tuple[int, int], list[InputRecord]] = {}
+    for row in provenance.contributions:
+        index = (first[0] + int(row["cell_j"]), first[1] + int(row["cell_i"]))
+        shape = shape_from_quadrupole(
+            float(row["psf_shape_xx"]),
+            float(row["psf_shape_yy"]),
+            float(row["psf_shape_xy"]),
+            bool(row["psf_shape_flag"]),
+            scale,
+        )
+        inputs.setdefault(index, []).append(
+            InputRecord(
+                visit=int(row["visit"]),
+                detector=int(row["detector"]),
+                band=band,
+                weight=float(row["weight"]),
+                status="used",
+                overlap_fraction=float(row["overlap_fraction"]),
+                zero_point=math.nan,  # not recorded
+                **shape,
+            )
+        )
+    table = provenance.inputs
+    instruments = {str(name) for name in table["instrument"]}
+    if len(instruments) != 1:
+        return inputs, None
+    visits: dict[int, VisitInfo] = {}
+    for row in table:
+        visits.setdefault(
+            int(row["visit"]),
+            VisitInfo(
+                visit=int(row["visit"]),
+                physical_filter=str(row["physical_filter"]),
+                day_obs=int(row["day_obs"]),
+            ),
+        )
+    return inputs, Observations(instrument=instruments.pop(), visits=tuple(visits.values()))
+
+
+def _rubin_aperture_corrections(
+    coadd: Any, cells: list[tuple[tuple[int, int], Any]]
+) -> ApertureCorrections | None:
+    fields = dict(coadd.aperture_corrections or {})
+    if not fields:
+        return None
+    algorithms = tuple(sorted(fields))
+    rows = []
+    for index, ij in cells:
+        values = []
+        for name in algorithms:
+            value = float(fields[name].value_in_cell(ij))
+            values.append(value if math.isfinite(value) else None)
+        if any(v is not None for v in values):
+            rows.append(CellApertureCorrection(index=index, values=tuple(values)))
+    return ApertureCorrections(algorithms=algorithms, cells=tuple(rows))
+
+
+def _from_rubin(images: Any, coadd: Any) -> PatchCoadd:
+    """A PatchCoadd of a stitched coadd made by Rubin's pipelines (see
+    :func:`from_lsst_images`)."""
+    geometry, name = _rubin_geometry(coadd)
+    if coadd.unit != u.nJy:
+        raise InvalidCoaddError(
+            f"this lsst-images coadd is in {coadd.unit}: a coadd made by Rubin is read in nJy "
+            "only (the zero point of other units is not recorded)",
+            value=str(coadd.unit),
+        )
+    config = geometry.config
+    bounds = coadd.psf.bounds
+    side = config.cell_inner
+    first = (bounds.grid.bbox.x.start // side, bounds.grid.bbox.y.start // side)
+    box = coadd.bbox
+    covered = Box(x_start=box.x.start, x_stop=box.x.stop, y_start=box.y.start, y_stop=box.y.stop)
+    band = str(coadd.band or "")
+    mask_bits, planes = _rubin_mask_bits(coadd.mask.schema)
+    cells_api = images.cells
+    present: list[tuple[tuple[int, int], Any]] = []
+    for index in geometry.cell_indices:
+        cell = geometry.tract.cell(*index)
+        inside = covered.intersection(cell.inner_bbox) == cell.inner_bbox
+        ij = cells_api.CellIJ(i=index[1] - first[1], j=index[0] - first[0])
+        if inside and bounds.contains_cell(ij):
+            present.append((index, ij))
+    if not present:
+        raise InvalidCoaddError("the lsst-images coadd holds no whole cell of its patch")
+    psf_size = int(np.asarray(coadd.psf[present[0][1]].array).shape[0])
+    scale = config.pixel_scale
+    inputs, observations = _rubin_inputs(coadd, first, band, scale)
+    tract = geometry.tract
+    meta = PatchMetadata(
+        skymap_config=config,
+        tract=tract.id,
+        tract_center=tract.center,
+        patch=geometry.index,
+        band=band,
+        units="nJy",
+        mask_bits=mask_bits,
+        build_config=BuildConfig(
+            n_noise=len(coadd.noise_realizations), psf_size=psf_size, units="nJy"
+        ),
+        software_version=RUBIN_SOFTWARE,
+        observations=observations,
+        aperture_corrections=_rubin_aperture_corrections(coadd, present),
+    )
+    image, variance = _float32(coadd.image), _float32(coadd.variance)
+    mask = np.zeros(image.shape, dtype=np.int32)
+    for ours, plane in planes.items():
+        mask |= coadd.mask.get(plane).astype(np.int32) << mask_bits.bits[ours]
+    fractions = coadd.mask_fractions or {}
+    mfrac = (
+        _float32(fractions[MFRAC_KEY])
+        if MFRAC_KEY in fractions
+        else np.full(image.shape, np.nan, np.float32)
+    )
+    noise = _noise(coadd, image.shape)
+    no_data = mask_bits.value("NO_DATA")
+    wcs = tract.wcs
+    cells: dict[tuple[int, int], CellCoadd] = {}
+    for index, ij in present:
+        inner, outer = meta.cell_boxes(index)
+        if not inputs.get(index):
+            raise InvalidCoaddError(
+                f"cell {index} has a PSF but the coadd's provenance lists no input for it",
+                value=index,
+            )
+        cells[index] = CellCoadd(
+            image=_embed(image, covered, inner, outer, np.nan),
+            mask=_embed(mask, covered, inner, outer, no_data),
+            variance=_embed(variance, covered, inner, outer, np.nan),
+            noise=_embed(noise, covered, inner, outer, np.nan),
+            mfrac=_embed(mfrac, covered, inner, outer, np.nan),
+            psf=np.asarray(coadd.psf[ij].array, dtype=np.float64),
+            inputs=inputs.get(index, []),
+            tract=tract.id,
+            index=index,
+            inner_bbox=inner,
+            outer_bbox=outer,
+            wcs=shifted_wcs(wcs, outer.x_start, outer.y_start),
+        )
+    return PatchCoadd(meta, cells)

@@ -8,9 +8,11 @@ from the afw ones (``lsst.images.get_legacy_*_mask_planes``). Our names are afw'
 ``SENSOR_EDGE`` (afw's ``EDGE`` on a coadd, lsst-images' ``DETECTION_EDGE``, is the
 detection-kernel edge of the image, a different thing).
 
-Names outside the table are kept as they are. A name is renamed only when its new name is
-not already one of the names, so the renaming can always be undone (``docs/format.md``,
-"Mask planes").
+Names outside the table are kept as they are, except on the way to lsst-images, which
+renames some of Rubin's own afw planes (:data:`RUBIN_LSST_IMAGES`): a Rubin coadd's
+``EDGE`` (kept under that name when the coadd also has ``SENSOR_EDGE``) is lsst-images'
+``DETECTION_EDGE``. A name is renamed only when its new name is not already taken, so the
+renaming can always be undone (``docs/format.md``, "Mask planes").
 """
 
 from __future__ import annotations
@@ -34,6 +36,13 @@ RUBIN_PLANES: dict[str, tuple[str, str, str]] = {
     "STREAK": ("STREAK", "STREAK", "Satellite trail in an input exposure."),
 }
 
+#: Rubin's afw plane names that lsst-images renames (``lsst.images.get_legacy_*_mask_planes``)
+#: and that are not ours: they come from a Rubin coadd read in. Afw name -> lsst-images name.
+RUBIN_LSST_IMAGES: dict[str, str] = {
+    "EDGE": "DETECTION_EDGE",
+    "UNMASKEDNAN": "UNMASKED_NAN",
+}
+
 _COLUMN = {"afw": 0, "lsst_images": 1}
 
 
@@ -45,18 +54,35 @@ def _renamed(names: list[str], table: dict[str, str]) -> dict[str, str]:
     }
 
 
-def to_rubin(bits: dict[str, int], flavour: Flavour) -> dict[str, int]:
-    """``bits`` (our name -> bit) with Rubin's names, bit numbers unchanged."""
-    table = {ours: names[_COLUMN[flavour]] for ours, names in RUBIN_PLANES.items()}
+def _rename(bits: dict[str, int], table: dict[str, str]) -> dict[str, int]:
     renamed = _renamed(list(bits), table)
     return {renamed[name]: bit for name, bit in bits.items()}
+
+
+def to_rubin(bits: dict[str, int], flavour: Flavour) -> dict[str, int]:
+    """``bits`` (our name -> bit) with Rubin's names, bit numbers unchanged.
+
+    For lsst-images, the names of Rubin's own planes that are left (a Rubin coadd's
+    ``EDGE``, when our ``EDGE`` could not become ``SENSOR_EDGE``) then get lsst-images'
+    names (:data:`RUBIN_LSST_IMAGES`)."""
+    table = {ours: names[_COLUMN[flavour]] for ours, names in RUBIN_PLANES.items()}
+    out = _rename(bits, table)
+    return _rename(out, RUBIN_LSST_IMAGES) if flavour == "lsst_images" else out
 
 
 def from_rubin(bits: dict[str, int], flavour: Flavour) -> dict[str, int]:
-    """``bits`` (Rubin's name -> bit) with our names: the inverse of :func:`to_rubin`."""
+    """``bits`` (Rubin's name -> bit) with our names: the inverse of :func:`to_rubin`.
+
+    lsst-images' ``DETECTION_EDGE`` becomes ``EDGE`` only beside a ``SENSOR_EDGE`` (as
+    :func:`to_rubin` makes them of a Rubin coadd's two planes); alone it keeps its name,
+    so that it is never taken for our ``EDGE``, the edge of an input detector."""
+    if flavour == "lsst_images":
+        back = {new: old for old, new in RUBIN_LSST_IMAGES.items()}
+        if "SENSOR_EDGE" not in bits:
+            del back["DETECTION_EDGE"]
+        bits = _rename(bits, back)
     table = {names[_COLUMN[flavour]]: ours for ours, names in RUBIN_PLANES.items()}
-    renamed = _renamed(list(bits), table)
-    return {renamed[name]: bit for name, bit in bits.items()}
+    return _rename(bits, table)
 
 
 def rubin_description(ours: str) -> str:
