@@ -151,7 +151,14 @@ def main() -> None:
     parser.add_argument("--preset", default="none", choices=PRESETS)
     parser.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated of {ALL_ROWS}")
     parser.add_argument("--shape", default="admom", choices=("admom", "wmom"))
-    parser.add_argument("--bfd-templates", type=int, default=100)
+    parser.add_argument(
+        "--bfd-templates", type=int, help="independent BFD templates (default: from the S/N)"
+    )
+    parser.add_argument(
+        "--object-offset", type=float,
+        help="coadd rows: random object positions within this many coadd pixels of the "
+        "cell centre (default: 5 with --preset high-snr, else 0)",
+    )  # fmt: skip
     parser.add_argument("--no-rotated-partners", action="store_true")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
@@ -192,8 +199,9 @@ def main() -> None:
             shear=args.shear,
             rotated_partners=not args.no_rotated_partners,
             shape=args.shape,
+            object_offset=args.object_offset,
         )
-        if options["method"] == "bfd":
+        if options["method"] == "bfd" and args.bfd_templates is not None:
             options["bfd_templates"] = args.bfd_templates
         described.append(f"{row}: {n_objects} pairs, {describe_settings(options)}")
         print(described[-1], flush=True)

@@ -93,7 +93,7 @@ def test_bfd_settings_follow_the_snr():
     assert few.templates == 100 and few.note.startswith("warning")
     # the forecast of the default realistic run is the stored 1600-template row
     row = model.forecast("bfd", "coadd", 10.0)
-    assert row is not None and "1600 templates" in row.source
+    assert row is not None and row.scale == 0.40
 
 
 def test_cli_refuses_bfd_settings_that_give_a_wrong_m1():

@@ -18,6 +18,10 @@ keyword arguments of :func:`~cellcoadd.pipelines.validate_shear`:
       k-space oversampling
       (:data:`~cellcoadd.pipelines.validation.validation_settings.BFD_OVERSAMPLE`).
 
+    Coadd rows put each object at a random position within :data:`TABLE_OBJECT_OFFSET`
+    coadd pixels of its cell's centre and measure it with the PSF ``psf_at`` serves there
+    (``object_offset``), where the served PSF can err, instead of on the centre pixel.
+
     :data:`HIGH_SNR_PAIRS` gives each row enough pairs for ``sigma_m <= 2e-4`` (about
     1e-4 expected from the per-pair scatter measured on smaller runs), about 20 CPU
     minutes for the five rows of Table 1.
@@ -39,6 +43,10 @@ HIGH_SNR = 1.0e4
 BFD_HIGH_SNR_SHEAR = 1.0e-3
 #: Default input shear g1 (the paper's).
 DEFAULT_SHEAR = 0.02
+#: ``object_offset`` of the ``high-snr`` coadd rows, coadd pixels: every sub-pixel phase
+#: of the coadd grid and ~2.5 periods of the inputs' resampling pattern (0.27" epochs on
+#: 0.2" coadd pixels repeat every ~3.9 coadd pixels), the galaxy >= 20 px from the edge.
+TABLE_OBJECT_OFFSET = 5.0
 #: Pairs per row of the ``high-snr`` preset: sigma_m ~ 1e-4 expected from the per-pair
 #: scatter of m at S/N 10^4 (metacal ~1.8e-3, BFD up to ~2.8e-3 at g1 = 1e-3 with rare
 #: outliers, AnaCal ~1.1e-3; docs/validation.md), half the 2e-4 aimed at.
@@ -187,6 +195,7 @@ def row_settings(
     shear: float | None = None,
     rotated_partners: bool = True,
     shape: str = "admom",
+    object_offset: float | None = None,
 ) -> dict[str, Any]:
     """Keyword arguments of :func:`~cellcoadd.pipelines.validate_shear` for one row.
 
@@ -205,12 +214,16 @@ def row_settings(
         Ring partners (``"none"`` preset).
     shape : {"admom", "wmom"}
         Metacal shape (other methods ignore it).
+    object_offset : float, optional
+        Coadd rows: random object positions within this many coadd pixels of the cell
+        centre (default: :data:`TABLE_OBJECT_OFFSET` with ``"high-snr"``, else 0).
 
     Returns
     -------
     dict
         ``mode``, ``method``, ``snr``, ``shear`` (the input g1), ``shape``,
-        ``rotated_partners`` and, for BFD, ``bfd_template_sample`` and ``bfd_oversample``.
+        ``rotated_partners``, ``object_offset`` for coadd rows and, for BFD,
+        ``bfd_template_sample`` and ``bfd_oversample``.
 
     Raises
     ------
@@ -239,6 +252,10 @@ def row_settings(
         "shape": shape if method == "metacal" else "admom",
         "rotated_partners": rotated_partners,
     }
+    if mode == "coadd":
+        if object_offset is None:
+            object_offset = TABLE_OBJECT_OFFSET if preset == "high-snr" else 0.0
+        options["object_offset"] = float(object_offset)
     if method == "bfd":
         options["bfd_template_sample"] = template_sample
         options["bfd_oversample"] = BFD_OVERSAMPLE
@@ -258,6 +275,8 @@ def describe_settings(options: dict[str, Any]) -> str:
     parts.append("ring partners" if options["rotated_partners"] else "no ring partners")
     if options["method"] == "metacal":
         parts.append(f"shape {options['shape']}")
+    if options.get("object_offset"):
+        parts.append(f"objects within {options['object_offset']:g} px of the cell centre")
     if options["method"] == "bfd":
         if options["bfd_template_sample"] == "targets":
             parts.append("templates: the targets unsheared (1 rotation)")
@@ -278,6 +297,7 @@ __all__ = [
     "DEFAULT_SHEAR",
     "HIGH_SNR",
     "HIGH_SNR_PAIRS",
+    "TABLE_OBJECT_OFFSET",
     "PRESETS",
     "choose_bfd",
     "describe_settings",

@@ -49,6 +49,7 @@ from cellcoadd.pipelines.validation.validation_settings import (
     ValidationSettings,
     check_method_mode,
     stamp_cell,
+    stamp_size_for_offset,
 )
 from cellcoadd.shear.metacal import ReconvolutionKind
 from cellcoadd.shear.response import (
@@ -284,6 +285,7 @@ def validate_shear(
     bfd_mirror: bool = False,
     checkpoint: str | os.PathLike[str] | None = None,
     checkpoint_every: int = 1000,
+    object_offset: float = 0.0,
 ) -> dict[str, Any]:
     """Measure the multiplicative and additive shear biases of metacal or BFD on cell coadds.
 
@@ -365,6 +367,11 @@ def validate_shear(
         existing one of the same settings is resumed (see :func:`run_pairs`).
     checkpoint_every : int
         Pairs between checkpoints.
+    object_offset : float
+        Coadd mode: objects at random positions within ``object_offset`` coadd pixels of
+        their cell's centre along each axis, measured with ``psf_at`` there (0: on the
+        centre pixel); the default stamps are enlarged so that the cell keeps its size
+        (see :class:`~cellcoadd.pipelines.ValidationSettings`).
 
     Returns
     -------
@@ -400,7 +407,12 @@ def validate_shear(
         )
         bfd_template_sample, bfd_templates = bfd.template_sample, bfd.templates
         rotated_partners, shear = bfd.rotated_partners, bfd.shear
-    sim = sim or SimConfig()
+    if sim is None:
+        sim = SimConfig()
+        if object_offset > 0.0:  # room for the moved cell, which keeps its size
+            border = ValidationSettings.model_fields["cell_border"].default
+            size = stamp_size_for_offset(sim, coadd_pixel_scale, border, object_offset)
+            sim = sim.model_copy(update={"stamp_size": size})
     if shear is not None:
         sim = SimConfig.model_validate({**sim.model_dump(), "shear": (shear, 0.0)})
     settings = ValidationSettings(
@@ -419,6 +431,7 @@ def validate_shear(
         bfd_template_sample=bfd_template_sample or "independent",
         bfd_oversample=bfd_oversample,
         bfd_mirror=bfd_mirror,
+        object_offset=object_offset,
     )
     start = time.perf_counter()
     measured = run_pairs(

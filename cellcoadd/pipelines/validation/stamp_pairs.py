@@ -24,6 +24,15 @@ run with seed ``s``:
    and its own noise realization (the first one is single mode's):
    :mod:`cellcoadd.pipelines.validation.epoch_measurements`.
 
+**Positions in the cell** (``object_offset``, coadd mode): by default the objects sit on
+the cell-centre pixel, where ``cell.psf`` was drawn, so the measurement cannot see how the
+PSF differs elsewhere in the cell. With ``object_offset = W`` each object's cell is moved
+so that the object falls at a random position ``(dx, dy)``, uniform in ``[-W, W]^2`` coadd
+pixels, from the centre pixel (any sub-pixel phase; generator keyed by ``(s, i)``, ring
+partners sharing it) and is measured there with the PSF the library serves at that
+position, :meth:`~cellcoadd.model.cell_coadd.CellCoadd.psf_at` (the centroid guess and
+BFD's centre at the object too).
+
 **Ring partners** (``rotated_partners``, default): objects ``2k`` and ``2k + 1`` are the
 same galaxy, PSFs, shifts and WCSs with the intrinsic ellipticity of ``2k + 1`` turned by
 90 degrees (``e -> -e``), so the mean intrinsic shape cancels in ``c`` over each partner
@@ -79,7 +88,11 @@ from cellcoadd.pipelines.validation.epoch_measurements import (
     measure_multi_epoch,
     measure_single_epoch,
 )
-from cellcoadd.pipelines.validation.validation_settings import ValidationSettings, stamp_cell
+from cellcoadd.pipelines.validation.validation_settings import (
+    ValidationSettings,
+    offset_cell,
+    stamp_cell,
+)
 from cellcoadd.shear import anacal_adapter, bfd
 from cellcoadd.shear.metacal import METACAL_TYPES, measure_metacal
 from cellcoadd.shear.observation import observation_jacobian, to_observation
@@ -94,6 +107,7 @@ _EPOCH_NOISE_STREAM = 1
 _SINGLE_NOISE_STREAM = 2
 _SNR_STREAM = 3
 _TEMPLATE_STREAM = 4
+_POSITION_STREAM = 5
 #: Template objects used for the BFD noise level (median signal).
 _REFERENCE_TEMPLATES = 50
 
@@ -360,25 +374,44 @@ def _build_stamp_cell(
         return build_cell(cell, exposures, config, seed=seed)
 
 
+def object_position(settings: ValidationSettings, index: int) -> tuple[float, float]:
+    """Offset ``(dx, dy)``, coadd pixels, of object ``index`` from its cell's centre pixel
+    (``(0, 0)`` unless ``settings.object_offset``; ring partners share it)."""
+    if settings.object_offset <= 0.0:
+        return 0.0, 0.0
+    base, _ = _partner(settings, index)
+    limit = settings.object_offset
+    dx, dy = _generator(settings, base, _POSITION_STREAM).uniform(-limit, limit, 2)
+    return float(dx), float(dy)
+
+
 def _measure_coadd(
-    settings: ValidationSettings, cell: Cell, exposures: list[Exposure]
+    settings: ValidationSettings,
+    cell: Cell,
+    exposures: list[Exposure],
+    position: tuple[float, float] | None = None,
 ) -> tuple[dict[str, np.ndarray], int]:
+    """Build and measure one member; ``position``: the object's array position in the
+    cell, measured with ``psf_at`` there (None: on the centre pixel, with ``cell.psf``)."""
     coadd = _build_stamp_cell(cell, exposures, settings.build, settings.seed)
     if coadd.is_empty:
         return _failed(settings, NO_COADD), 0
     obs = to_observation(coadd, noise_index=settings.noise_index)
     jac = obs["jacobian"]
+    centre = (jac["col0"], jac["row0"])
+    if position is not None:
+        obs["psf"]["image"] = coadd.psf_at(*position)
+        centre = position
     if settings.method == "bfd":
         measured = bfd_measurement(
             settings, obs["image"], obs["psf"]["image"], observation_jacobian(obs),
-            (jac["col0"], jac["row0"]), noise_images=[obs["noise"]],
+            centre, noise_images=[obs["noise"]],
         )  # fmt: skip
         return measured, coadd.n_used
     if settings.method == "anacal":
         record = anacal_adapter.measure_fpfs(
             obs["image"], obs["psf"]["image"], obs["noise"], observation_jacobian(obs),
-            obs["meta"]["noise_variance"], (jac["col0"], jac["row0"]),
-            sigma_arcsec=settings.anacal_sigma,
+            obs["meta"]["noise_variance"], centre, sigma_arcsec=settings.anacal_sigma,
         )  # fmt: skip
         return {"anacal": record}, coadd.n_used
     result = measure_metacal(
@@ -389,7 +422,7 @@ def _measure_coadd(
         noise_sigma=float(np.sqrt(obs["meta"]["noise_variance"])),
         step=settings.step,
         psf=settings.reconvolution_psf,
-        guess_centroid=(jac["col0"], jac["row0"]),
+        guess_centroid=centre,
         shape=settings.shape,
         weight_fwhm=settings.wmom_fwhm,
     )
@@ -506,13 +539,17 @@ def measure_pair(
     if settings.mode == "multi-epoch":  # the same epochs' geometry and PSFs in both members
         geometry = EpochGeometry.of(plus, settings.build.stamp_size)
         reconv = common_psf(settings, geometry) if settings.method == "metacal" else None
+    position = None
+    if settings.mode == "coadd" and settings.object_offset > 0.0:
+        cell, *at = offset_cell(settings, *object_position(settings, index))
+        position = (at[0], at[1])
     results = []
     n_inputs = 1
     for obj in (plus, minus):
         exposures = _with_noise(obj, noise, sigma)
         if settings.mode == "coadd":
             assert cell is not None  # made above
-            measured, n_inputs = _measure_coadd(settings, cell, exposures)
+            measured, n_inputs = _measure_coadd(settings, cell, exposures, position)
         elif settings.mode == "multi-epoch":
             measured = measure_multi_epoch(settings, exposures, geometry, sigma, own_noise, reconv)
             n_inputs = len(exposures)
@@ -539,4 +576,5 @@ __all__ = [
     "bfd_noise_sigma",
     "bfd_templates",
     "measure_pair",
+    "object_position",
 ]

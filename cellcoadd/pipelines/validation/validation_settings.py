@@ -130,6 +130,14 @@ class ValidationSettings(BaseModel):
         cost of ``P, Q, R`` (docs/validation.md, "Mirror images in the prior").
     anacal_sigma : float
         Scale (arcsec) of AnaCal's FPFS shapelet kernel.
+    object_offset : float
+        Coadd mode: each object at a random position of the cell, uniform in the square of
+        half-side ``object_offset`` coadd pixels about the cell centre (ring partners
+        share it), measured with the PSF the library serves there
+        (:meth:`~cellcoadd.model.cell_coadd.CellCoadd.psf_at`: the build gets
+        ``psf_phase``); 0 (default): on the cell-centre pixel, where ``cell.psf`` was
+        drawn. The cell keeps its size: :func:`stamp_size_for_offset` gives stamps large
+        enough (``validate_shear`` enlarges the default ones).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -155,6 +163,7 @@ class ValidationSettings(BaseModel):
     bfd_template_sample: Literal["independent", "targets"] = "independent"
     bfd_mirror: bool = False
     anacal_sigma: float = Field(0.8, gt=0.0, lt=3.0, description="arcsec")
+    object_offset: float = Field(0.0, ge=0.0, le=100.0, description="coadd pixels")
 
     @model_validator(mode="before")
     @classmethod
@@ -162,14 +171,17 @@ class ValidationSettings(BaseModel):
         if not isinstance(data, dict):
             return data
         data = dict(data)
+        offset = data.get("object_offset", 0.0)
         if data.get("cell_inner") is None:
             sim = data.get("sim")
             sim = SimConfig() if sim is None else SimConfig.model_validate(sim)
             data["cell_inner"] = largest_cell_inner(
-                sim, data.get("coadd_pixel_scale", 0.2), data.get("cell_border", 5)
+                sim, data.get("coadd_pixel_scale", 0.2), data.get("cell_border", 5), offset
             )
         build = data.get("build")
         build = BuildConfig(n_noise=1) if build is None else BuildConfig.model_validate(build)
+        if isinstance(offset, int | float) and offset > 0 and not build.psf_phase:
+            build = build.model_copy(update={"psf_phase": True})  # psf_at off the centre
         outer = data["cell_inner"] + 2 * data.get("cell_border", 5)
         if isinstance(outer, int):  # else the field validators refuse the sizes
             # the PSF stamp left out: as large as the cell holds, up to the builder's default
@@ -215,6 +227,12 @@ class ValidationSettings(BaseModel):
                 "is its twin turned by 90 degrees, a second template the prior would confuse "
                 "with the target's own"
             )
+        if self.object_offset > 0 and self.mode != "coadd":
+            raise ConfigError(
+                "object_offset places objects in the coadd's cell: coadd mode only (the "
+                "epochs are measured at the objects' own positions)",
+                value=self.object_offset,
+            )
         if self.build.stamp_size > self.cell_inner + 2 * self.cell_border:
             raise ConfigError(
                 "build.psf_size exceeds the cell outer box", value=self.build.psf_size
@@ -241,8 +259,12 @@ class ValidationSettings(BaseModel):
         )
 
 
-def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: int = 5) -> int:
-    """Largest odd cell inner size whose outer box fits every epoch stamp with Lanczos-3.
+def largest_cell_inner(
+    sim: SimConfig, coadd_pixel_scale: float, cell_border: int = 5, offset: float = 0.0
+) -> int:
+    """Largest odd cell inner size whose outer box fits every epoch stamp with Lanczos-3,
+    also when moved by up to ``offset`` coadd pixels along each axis (objects at random
+    positions of the cell: :attr:`ValidationSettings.object_offset`).
 
     Lanczos-3 taps run from ``floor(x) - 2`` to ``floor(x) + 3``, so every outer-box pixel
     centre must map to ``2 <= x < stamp_size - 3`` in each epoch; the object sits at
@@ -262,7 +284,9 @@ def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: in
     reach = (sim.stamp_size - 1) / 2.0 - sim.max_shift - (KERNEL_HALF_WIDTH - 1)
     spread = np.sqrt(sim.wcs.scale_sigma**2 + 2.0 * sim.wcs.shear_sigma**2)
     stretch = (1.0 + 6.0 * spread) * (np.sqrt(2.0) if sim.wcs.rotate else 1.0)
-    half_outer = int(np.floor(reach / stretch * sim.pixel_scale / coadd_pixel_scale - 1e-9))
+    half_outer = int(
+        np.floor(reach / stretch * sim.pixel_scale / coadd_pixel_scale - offset - 1e-9)
+    )
     inner = 2 * (half_outer - cell_border) + 1
     if inner < 1:
         raise ConfigError(
@@ -271,6 +295,32 @@ def largest_cell_inner(sim: SimConfig, coadd_pixel_scale: float, cell_border: in
             value=cell_border,
         )
     return inner
+
+
+def stamp_size_for_offset(
+    sim: SimConfig, coadd_pixel_scale: float, cell_border: int, offset: float
+) -> int:
+    """The smallest epoch stamp size (pixels, >= ``sim.stamp_size``) whose largest cell,
+    moved by up to ``offset`` coadd pixels, is as large as ``sim``'s unmoved one: objects
+    at random positions then keep the cell (and its PSF stamp) of centred objects."""
+    wanted = largest_cell_inner(sim, coadd_pixel_scale, cell_border)
+    size = sim.stamp_size
+    while largest_cell_inner(sim.model_copy(update={"stamp_size": size}),
+                             coadd_pixel_scale, cell_border, offset) < wanted:  # fmt: skip
+        size += 2
+    return size
+
+
+def offset_cell(settings: ValidationSettings, dx: float, dy: float) -> tuple[Cell, float, float]:
+    """The one-cell sky map's cell moved so that the objects (at ``(sim.ra, sim.dec)``)
+    fall ``(dx, dy)`` coadd pixels from its centre pixel, and their exact array position
+    ``(x, y)`` there (the moved tangent point puts them ~1e-5 px from the aim)."""
+    centred = stamp_cell(settings)
+    ny, nx = centred.outer_bbox.shape
+    ra, dec = (float(v) for v in centred.wcs.pixel_to_world_values(nx // 2 - dx, ny // 2 - dy))
+    cell = SkyMap.from_centers([(ra, dec)], settings.skymap_config())[0].cell(0, 0)
+    x, y = (float(v) for v in cell.wcs.world_to_pixel_values(settings.sim.ra, settings.sim.dec))
+    return cell, x, y
 
 
 def expected_inputs(settings: ValidationSettings) -> int:
