@@ -98,14 +98,14 @@ def input_map(
     -------
     ndarray, shape (8,), float64
         The phase of the cell-centre pixel ``(nx // 2, ny // 2)``; the affine map from
-        coadd to exposure pixels fitted (least squares, every 5th pixel) over the inner
+        coadd to exposure pixels fitted (least squares, every 15th pixel) over the inner
         box with its constant at that pixel, so the centre's phase is exact; its area
         ratio; ``weight``.
     """
     ny, nx = x.shape
     cy, cx = ny // 2, nx // 2
     rows, cols = inner
-    jj, ii = np.mgrid[rows.start : rows.stop : 5, cols.start : cols.stop : 5]
+    jj, ii = np.mgrid[rows.start : rows.stop : 15, cols.start : cols.stop : 15]
     design = np.stack([(ii - cx).ravel(), (jj - cy).ravel()], axis=1).astype(np.float64)
     target = np.stack([(x[jj, ii] - x[cy, cx]).ravel(), (y[jj, ii] - y[cy, cx]).ravel()], axis=1)
     affine = np.linalg.lstsq(design, target, rcond=None)[0].T  # [[xx, xy], [yx, yy]]
