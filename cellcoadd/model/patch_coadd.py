@@ -65,6 +65,7 @@ from cellcoadd.model.units import (
 #: ``HDU_PSF_CORNERS``, -1 without it; an HDF5 dataset listed in ``contents`` when stored).
 #: 1.5: the optional planes ``psf_phase`` and ``psf_maps`` (``BuildConfig.psf_phase``), one
 #: layer per used input (``HDU_PSF_PHASE``, ``HDU_PSF_MAPS``, as ``psf_corners``).
+#: also in 1.5: the optional ``aperture_corrections`` (kept from a Rubin coadd's ``APCORR``).
 FORMAT_VERSION = "1.5"
 
 #: The first format version whose ``units`` is an astropy unit string.

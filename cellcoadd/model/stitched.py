@@ -59,7 +59,11 @@ def psf_at(patch: PatchCoadd, x: float, y: float) -> np.ndarray:
     The cell of :func:`cell_of_position` gives it: interpolated to ``(x, y)`` by
     :meth:`CellCoadd.psf_at <cellcoadd.model.cell_coadd.CellCoadd.psf_at>` when the cell
     holds the planes it needs (``psf_corners`` or ``psf_phase``), otherwise the cell's
-    PSF stamp (Rubin's ``StitchedPsf``: one PSF per cell).
+    PSF stamp (Rubin's ``StitchedPsf``: one PSF per cell). Unlike
+    :meth:`PatchCoadd.psf_at <cellcoadd.model.patch_coadd.PatchCoadd.psf_at>` (pixels of
+    the stitched inner-box arrays, cells with those planes only), it takes tract pixels
+    anywhere in the patch's outer box, as Rubin's stitched coadds cover it, and serves
+    every cell with data.
 
     Parameters
     ----------
