@@ -592,6 +592,25 @@ class PiffPsf(_FileModel):
         cx, cy = center if center is not None else (x, y)
         return _draw_profile(profile, image, x, y, (cx, cy), method)
 
+    def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
+        model = self.model
+        chipnum = self.chipnum if self.chipnum is not None else list(model.wcs)[0]
+        xf, yf = x + self.origin, y + self.origin
+        try:
+            profile, method = model.get_profile(xf, yf, chipnum=chipnum)
+            local = model.wcs[chipnum].local(galsim.PositionD(xf, yf))
+        except (galsim.GalSimError, ValueError, KeyError) as err:
+            raise PsfError(
+                f"{self.source}: Piff model failed at ({x:.2f}, {y:.2f}): {err}"
+            ) from err
+        check_psf_flux(float(profile.flux), f"{self.source} at ({x:.2f}, {y:.2f})")
+        on_pixels = local.toImage(profile)
+        if method == "no_pixel":
+            return on_pixels
+        if method in ("auto", "fft", "real_space"):  # GalSim adds the pixel for these
+            return _with_pixel(on_pixels)
+        raise PsfError(f"{self.source}: no profile form for Piff's drawing method {method!r}")
+
 
 def _with_pixel(profile: galsim.GSObject) -> galsim.GSObject:
     """``profile`` (exposure pixels) convolved with the unit pixel."""
