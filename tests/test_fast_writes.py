@@ -96,7 +96,7 @@ def test_fletcher32_is_what_hdf5_stores(tmp_path):
 
 def test_written_hdf5_chunks_are_those_hdf5_would_write(tmp_path):
     """Every stored chunk of a written file is byte for byte what HDF5's filter stores."""
-    patch = make_patch(seed=3, psf_corners=True)  # every plane, the optional one included
+    patch = make_patch(seed=3, psf_corners=True, psf_phase=True)  # every plane
     path = tmp_path / "patch.h5"
     api.write(patch, path)
     reference = tmp_path / "reference.h5"
@@ -119,7 +119,7 @@ def test_written_hdf5_chunks_are_those_hdf5_would_write(tmp_path):
 
 @pytest.mark.parametrize("compression", [None, "lossless"])
 def test_hdf5_flipped_byte_in_any_plane_is_reported(tmp_path, compression):
-    patch = make_patch(seed=4, psf_corners=True)  # every plane, the optional one included
+    patch = make_patch(seed=4, psf_corners=True, psf_phase=True)  # every plane
     path = tmp_path / "patch.h5"
     api.write(patch, path, compression=compression)
     raw = path.read_bytes()

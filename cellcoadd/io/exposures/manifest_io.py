@@ -194,6 +194,8 @@ def build_config_toml(config: BuildConfig, preset: str | None = None) -> str:
     noise_variance = "background"
     # psf_corners: also store the coadd PSF at the 4 corner pixels of each cell's inner box
     psf_corners = false
+    # psf_phase: also store each used input's resampling phase term, for psf_at
+    psf_phase = false
     <BLANKLINE>
     """
     lines = ["# cellcoadd build configuration (BuildConfig); see docs/inputs.md", ""]
