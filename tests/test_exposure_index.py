@@ -218,3 +218,36 @@ def test_index_command_updates_and_summarises(tmp_path):
     result = runner.invoke(cli, ["index", "--db", db, "--stats"])
     assert result.exit_code == 0, result.output
     assert "10 files (9 usable, 1 bad" in result.output and "band r: 9 files" in result.output
+
+
+def test_a_damaged_row_is_read_again_or_marked_bad_never_trusted(tmp_path):
+    """A row that disagrees with its checksum is read again when its file is indexed
+    again; otherwise it is marked bad (its identity no longer taken), never left usable.
+    A row id moved away from its footprint pixels is named by queries."""
+    import sqlite3
+
+    from cellcoadd.errors import IndexRowError
+
+    paths = write_field(tmp_path, n_visits=1)
+    db = tmp_path / "inputs.sqlite"
+    with ExposureIndex(db) as index:
+        index.update(_entries(paths))
+    with sqlite3.connect(db) as raw:
+        raw.execute("UPDATE exposures SET band = 'z' WHERE path = ?", (str(paths[0]),))
+        raw.execute("UPDATE exposures SET band = 'z' WHERE path = ?", (str(paths[1]),))
+    raw.close()
+    with ExposureIndex(db) as index:
+        update = index.update(_entries(paths[:1]))  # paths[1] is not indexed again
+        assert update.updated == [str(paths[0])]
+        assert update.bad == [(str(paths[1]), update.bad[0][1])]
+        assert "its index row was damaged" in update.bad[0][1]
+        assert index.stats()["ok"] == 8 and index.bands() == ["r"]
+        update = index.update(_entries(paths[1:2]))
+        assert update.updated == [str(paths[1])] and not update.bad
+        assert index.stats()["ok"] == 9
+    with sqlite3.connect(db) as raw:
+        raw.execute("UPDATE exposures SET id = 1000 WHERE path = ?", (str(paths[4]),))
+    raw.close()
+    with ExposureIndex(db, readonly=True) as index:
+        with pytest.raises(IndexRowError, match=r"the spatial key lists rows \[\d+\]"):
+            index.query(_patch_corners(skymap()[0].patch(1, 1)))

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import fitsio
 import galsim
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -191,5 +192,145 @@ def test_survey_headers_read_or_are_refused(lsst_bytes, edits):
         for name, bit in LSST_PLANES.items():  # mask planes not edited keep their bits
             if f"MP_{name}" not in edited:
                 assert exposure.mask_bits.bits[name] == bit
+    finally:
+        shutil.rmtree(directory)
+
+
+# -- exposure index rows ------------------------------------------------------------------
+
+#: Every column of a stored index row (``id`` included: text that SQLite takes as an
+#: integer moves the row away from its footprint pixels).
+INDEX_COLUMNS = (
+    "id", "path", "status", "reason", "entry", "layout", "psf", "visit", "detector", "band",
+    "zero_point", "nx", "ny", "valid_box", "corners", "area_deg2", "header", "files", "size",
+    "mtime_ns", "sha256", "indexed", "header_sha256", "n_pixels", "checksum",
+)  # fmt: skip
+index_values = st.one_of(
+    st.binary(max_size=40),
+    st.text(max_size=40),
+    st.sampled_from(['{"a": 1', "[1, 2", "[[1, 2]]", "null", "[]", "{}", "NaN", "7", "1e400"]),
+    json_values.map(json.dumps),
+    st.integers(min_value=-(2**63), max_value=2**63 - 1),
+    st.floats(allow_nan=True, allow_infinity=True),
+)
+
+
+@pytest.fixture(scope="module")
+def indexed_field(tmp_path_factory):
+    """An index of 9 exposures (one damaged per example, in a copy) and what its rows
+    hold as decoded."""
+    from run_factory import skymap, write_field
+
+    from cellcoadd.io.exposures.index import ExposureIndex, absolute_entry
+    from cellcoadd.model.manifest import ManifestEntry
+
+    root = tmp_path_factory.mktemp("index-fuzz")
+    paths = write_field(root / "inputs", n_visits=1)
+    entries = [absolute_entry(ManifestEntry(path=str(p)), ".") for p in paths]
+    with ExposureIndex(root / "inputs.sqlite") as index:
+        index.update(entries, checksum=True)
+    tract = skymap()[0]
+    box = tract.bbox
+    x = [box.x_start - 0.5, box.x_stop - 0.5, box.x_stop - 0.5, box.x_start - 0.5]
+    y = [box.y_start - 0.5, box.y_start - 0.5, box.y_stop - 0.5, box.y_stop - 0.5]
+    corners = np.column_stack(tract.pixel_to_sky(np.array(x), np.array(y)))
+    with ExposureIndex(root / "inputs.sqlite", readonly=True) as index:
+        rows = index.by_ids([row.id for row in index.query(corners)])
+        decoded = {row.path: _decoded(row) for row in rows}
+    return root / "inputs.sqlite", entries, corners, decoded
+
+
+def _decoded(row) -> tuple:
+    """What the reads of a row give: identity, band, footprint, files, entry, header."""
+    files = [(f.path, f.size, f.mtime_ns) for f in row.files]  # SHA-256s: as indexed
+    return (
+        row.visit, row.detector, row.band, row.corners.tolist(), files, row.entry,
+        row.header_json,
+    )  # fmt: skip
+
+
+def _read_everything(db: Path, corners: np.ndarray, deep: set) -> dict:
+    """Every read a run makes of the index's rows (query, rows by id, each decoded
+    column; for rows of ``deep`` ids, and the check against the file), by path."""
+    from cellcoadd.io.exposures.index import ExposureIndex
+
+    with ExposureIndex(db, readonly=True) as index:
+        rows = index.by_ids([row.id for row in index.query(corners)])
+    out = {}
+    for row in rows:
+        out[row.path] = _decoded(row)
+        row.header()
+        if row.id in deep:
+            assert row.not_as_indexed(str(db)) is None
+            row.cross_check()
+    return out
+
+
+@FUZZ
+@given(
+    column=st.sampled_from(INDEX_COLUMNS),
+    value=index_values,
+    target=st.integers(min_value=0, max_value=8),
+    forge=st.booleans(),
+)
+def test_index_rows_read_or_name_the_row(indexed_field, column, value, target, forge):
+    """Whatever is written into a column of a stored row, with its checksum left alone or
+    made to agree: the reads give the rows as indexed, or an IndexRowError naming the row
+    (its id, or the id it had); never another exception, never other data; and indexing
+    again (``--checksum`` for a consistent forgery) repairs it."""
+    import sqlite3
+
+    from cellcoadd.errors import IndexRowError
+    from cellcoadd.io._files.stamps import json_sha256
+    from cellcoadd.io.exposures.index import CHECKED_FIELDS, ExposureIndex, row_checksum
+
+    template, entries, corners, decoded = indexed_field
+    directory = _workdir()
+    try:
+        db = directory / "inputs.sqlite"
+        shutil.copyfile(template, db)
+        raw = sqlite3.connect(db)
+        raw.row_factory = sqlite3.Row
+        ids = [row[0] for row in raw.execute("SELECT id FROM exposures ORDER BY id")]
+        row_id = ids[target % len(ids)]
+        try:
+            with raw:
+                raw.execute(f"UPDATE exposures SET {column} = ? WHERE id = ?", (value, row_id))
+                if column == "id":
+                    row_id = value  # where the row is now; its pixels name the old id
+                if forge:
+                    row = raw.execute("SELECT * FROM exposures WHERE id = ?", (row_id,)).fetchone()
+                    if column == "header" and isinstance(value, str):
+                        sha = json_sha256(value)
+                        raw.execute(
+                            "UPDATE exposures SET header_sha256 = ? WHERE id = ?", (sha, row_id)
+                        )
+                        row = raw.execute(
+                            "SELECT * FROM exposures WHERE id = ?", (row_id,)
+                        ).fetchone()
+                    checksum = row_checksum({name: row[name] for name in CHECKED_FIELDS})
+                    raw.execute(
+                        "UPDATE exposures SET checksum = ? WHERE id = ?", (checksum, row_id)
+                    )
+        except (sqlite3.IntegrityError, sqlite3.InterfaceError, OverflowError, TypeError):
+            return  # SQLite refused the value (CHECK, NOT NULL, UNIQUE, a rowid's type)
+        finally:
+            raw.close()
+        old_id = ids[target % len(ids)]
+        try:  # a consistent forgery is found by the check against the file
+            read = _read_everything(db, corners, deep={row_id} if forge else set())
+        except IndexRowError as err:
+            assert err.row in (old_id, row_id), (err.row, old_id, row_id, str(err))
+            assert f"row {err.row}" in str(err) or f"rows [{err.row}" in str(err), str(err)
+        else:
+            assert read == decoded  # the column changed nothing a read uses
+        if column == "id":
+            return  # a moved row id is named, not repaired: index into a new file
+        with ExposureIndex(db) as index:
+            update = index.update(entries, checksum=forge)
+            # a row whose path was damaged: its file is added again, the row marked bad
+            assert len(update.added) <= (column == "path"), update
+            assert len(update.bad) == len(update.added), update  # the row left: marked bad
+        assert _read_everything(db, corners, deep=set()) == decoded
     finally:
         shutil.rmtree(directory)

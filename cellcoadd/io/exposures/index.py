@@ -327,7 +327,8 @@ class IndexedExposure:
     def cross_check(self, source: ExposureSource | None = None) -> DescribedSource:
         """The source with its header read from the file, after checking that every
         stored field the build uses (identity, band, zero point, shape, valid box, mask
-        bits, WCS) equals what the file says now.
+        bits, WCS) equals what the file says now, and that the row's own columns used to
+        plan (visit, detector, band, footprint corners) agree with it.
 
         Raises
         ------
@@ -337,21 +338,45 @@ class IndexedExposure:
         source = source or self.source()
         header = self.header()  # IndexRowError if the stored header does not decode
         stored = json.loads(self.header_json or "{}")
-        found = json.loads(header_to_json(source.header()))
+        read = source.header()
+        found = json.loads(header_to_json(read))
         fields = tuple(name for name in found if stored.get(name) != found[name])
+        details = [
+            f"{name}: index {_short(stored.get(name))}, file {_short(found[name])}"
+            for name in fields
+        ]
+        for name, value in (("visit", self.visit), ("detector", self.detector)):
+            if value != found[name]:
+                fields += (name,)
+                details.append(f"{name} column: index {value}, file {found[name]}")
+        if self.path != self.entry.path:
+            fields += ("path",)
+            details.append(f"path column: index {self.path!r}, entry {self.entry.path!r}")
+        if self.band != found["band"]:
+            fields += ("band",)
+            details.append(f"band column: index {self.band!r}, file {found['band']!r}")
+        # the footprint planning used (a row forged with its checksum could move it)
+        if not _same_corners(self.corners, footprint_corners(read)):
+            fields += ("corners",)
+            details.append("corners column: not the file's footprint")
         if fields:
-            details = "; ".join(
-                f"{name}: index {_short(stored.get(name))}, file {_short(found[name])}"
-                for name in fields
-            )
             raise IndexRowError(
                 f"{self.path}: row {self.id} of the exposure index differs from the file "
-                f"({details}): run `cellcoadd index` again",
+                f"({'; '.join(details)}): run `cellcoadd index` again",
                 path=self.path,
                 row=self.id,
                 fields=fields,
             )
         return DescribedSource(source, header)
+
+
+def _same_corners(a: np.ndarray, b: np.ndarray, tolerance_deg: float = 1e-6) -> bool:
+    """Whether two footprints' RA/Dec corners agree within ``tolerance_deg`` (RA across
+    0/360 too)."""
+    ra = (a[:, 0] - b[:, 0] + 180.0) % 360.0 - 180.0
+    return bool(
+        np.all(np.abs(ra) <= tolerance_deg) and np.all(np.abs(a[:, 1] - b[:, 1]) <= tolerance_deg)
+    )
 
 
 def _short(value: Any) -> str:
@@ -576,13 +601,14 @@ class ExposureIndex:
         """
         start = time.perf_counter()
         result = IndexUpdate()
-        # a damaged row is read again (or marked vanished), never fatal
+        # a damaged row is read again, or marked vanished or bad: never fatal
         columns = ", ".join(("id", "checksum", "header", *CHECKED_FIELDS))
         known = {
             row["path"]: (
                 row["status"] if row["status"] != "ok" or _row_intact(row, checksum) else "damaged",
                 _decoded_files(row["files"]),
                 row["entry"],
+                row["id"],
             )
             for row in self._db.execute(f"SELECT {columns} FROM exposures")
         }
@@ -604,18 +630,21 @@ class ExposureIndex:
                 todo.append(entry)
         described = self._describe_all(todo, checksum, workers, progress)
         with self._db:
-            for path, (status, files, _) in known.items():
-                if path not in seen and status != "vanished" and not _exists(files, path):
-                    self._db.execute(
-                        "UPDATE exposures SET status = 'vanished', reason = ? WHERE path = ?",
-                        ("the file vanished", path),
-                    )
-                    self._db.execute(
-                        "DELETE FROM footprint WHERE exposure = "
-                        "(SELECT id FROM exposures WHERE path = ?)",
-                        (path,),
-                    )
+            for path, (status, files, _, row_id) in known.items():
+                if path in seen or status == "vanished":
+                    continue
+                if not _exists(files, path):
+                    change = ("vanished", "the file vanished")
                     result.vanished.append(path)
+                elif status == "damaged":  # not read again now: its columns are not trusted
+                    change = ("bad", _DAMAGED_ROW)
+                    result.bad.append((str(path), _DAMAGED_ROW))
+                else:
+                    continue
+                self._db.execute(
+                    "UPDATE exposures SET status = ?, reason = ? WHERE id = ?", (*change, row_id)
+                )
+                self._db.execute("DELETE FROM footprint WHERE exposure = ?", (row_id,))
             identities = _Identities(self._db)
             for item in described:
                 item = identities.claim(item)
@@ -738,11 +767,18 @@ class ExposureIndex:
                     f"SELECT DISTINCT exposure FROM footprint WHERE pixel IN ({marks})", part
                 )
             )
-        found = [
-            self._checked(row)
-            for row in self._rows(sorted(ids), header=False)
-            if band in (None, row["band"])
-        ]
+        rows = self._rows(sorted(ids), header=False)
+        if len(rows) != len(ids):  # footprint pixels of no usable row: a changed row id
+            orphans = sorted(ids - {row["id"] for row in rows})
+            raise IndexRowError(
+                f"{self.path}: the spatial key lists rows {orphans[:5]} of the exposure index, "
+                "which are not usable rows (a row id changed, or the key was damaged): run "
+                "`cellcoadd index` into a new file",
+                path=self.path,
+                row=int(orphans[0]),
+                fields=("id",),
+            )
+        found = [self._checked(row) for row in rows if band in (None, row["band"])]
         return sorted(found, key=lambda item: (item.visit, item.detector, item.path))
 
     def _rows(self, ids: Sequence[int], header: bool = True) -> list[sqlite3.Row]:
@@ -964,6 +1000,9 @@ class ExposureIndex:
 #: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
 _CHUNK = 900
 
+#: Why a damaged row not read again in an update is marked bad.
+_DAMAGED_ROW = "its index row was damaged (it disagrees with its checksum): index the file again"
+
 #: The type each column an :class:`IndexedExposure` takes has in a row as stored.
 _ROW_TYPES: dict[str, type] = {
     "path": str, "visit": int, "detector": int, "band": str, "checksum": str, "entry": str,
@@ -983,12 +1022,25 @@ def _row_intact(row: sqlite3.Row, deep: bool) -> bool:
         return False
     if deep:
         try:
-            header_from_json(header)
-            ManifestEntry.model_validate_json(row["entry"])
+            described = header_from_json(header)
+            stored = json.loads(header)
+            entry = ManifestEntry.model_validate_json(row["entry"])
             corners = np.asarray(json.loads(row["corners"]), dtype=float)
+            files = _decoded_files(row["files"])
+            # the columns queries and plans use are those of the header
+            return (
+                files is not None
+                and entry_files(entry) == [f[0] for f in files]
+                and entry.path == row["path"]
+                and corners.shape == (4, 2)
+                and _same_corners(corners, footprint_corners(described))
+                and [row[k] for k in ("visit", "detector", "band", "zero_point")]
+                == [stored[k] for k in ("visit", "detector", "band", "zero_point")]
+                and [row["ny"], row["nx"]] == stored["shape"]
+                and row["valid_box"] == json.dumps(stored["valid_box"])
+            )
         except (CellCoaddError, TypeError, ValueError, KeyError, IndexError, OverflowError):
             return False
-        return corners.shape == (4, 2) and _decoded_files(row["files"]) is not None
     return True
 
 
