@@ -626,6 +626,18 @@ def test_named_sky_maps_and_aliases(tmp_path):
     ours = api.write(make_patch(seed=1), tmp_path / "ours.fits")
     with pytest.raises(ConfigError, match="skymap applies to lsst.cell_coadds files only"):
         api.read(ours, skymap="lsst_cells_v1")
+    # the command line names it too
+    _write_by_hand(path, skymap="my_cells")
+    runner = CliRunner()
+    result = runner.invoke(info_command, [str(path), "--json", "--skymap", "lsst_cells_v1"])
+    assert result.exit_code == 0, result.output
+    assert f'"tract": {TRACT}' in result.output
+    result = runner.invoke(info_command, [str(path), "--skymap", "hsc"])
+    assert result.exit_code != 0 and "known: DC2_cells_v1" in result.output
+    target = tmp_path / "named.h5"
+    result = runner.invoke(convert_command, [str(path), str(target), "--skymap", "lsst_cells_v1"])
+    assert result.exit_code == 0, result.output
+    assert api.read(target).metadata.skymap_config.name == "lsst_cells_v1"
 
 
 def test_the_wcs_must_agree_with_the_declared_sky_map(tmp_path):

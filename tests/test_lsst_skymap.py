@@ -308,6 +308,12 @@ def test_cli_locate_accepts_the_name(lsst):
     result = CliRunner().invoke(main, ["locate", "53.16", "-28.1", "--skymap", "lsst", "--json"])
     assert result.exit_code == 0, result.output
     assert '"tract": 5063' in result.output
+    where = lsst.locate([53.16], [-28.1])[0]
+    assert f'"patch_id": {where["patch_id"]}' in result.output
+    text = CliRunner().invoke(main, ["locate", "53.16", "-28.1", "--skymap", "DC2_cells_v1"])
+    assert text.exit_code == 0, text.output
+    rubin = (where["patch_id"], where["rubin_cell_x"], where["rubin_cell_y"])
+    assert "Rubin: patch {}, cell ({}, {})".format(*rubin) in text.output
     summary = CliRunner().invoke(main, ["skymap", "--lsst"])
     assert summary.exit_code == 0, summary.output
     assert "18938 tract(s)" in summary.output and "lsst_cells_v1" in summary.output

@@ -123,5 +123,7 @@ def locate(ra: float, dec: float, skymap_path: str | None, as_json: bool) -> Non
         click.echo(
             f"tract {result['tract']}  patch ({result['patch_x']}, {result['patch_y']})  "
             f"cell ({result['cell_x']}, {result['cell_y']})  "
-            f"tract pixel ({result['x']:.2f}, {result['y']:.2f})"
+            f"tract pixel ({result['x']:.2f}, {result['y']:.2f})  "
+            f"Rubin: patch {result['patch_id']}, cell "
+            f"({result['rubin_cell_x']}, {result['rubin_cell_y']})"
         )

@@ -97,7 +97,7 @@ skymap_option = click.option(
     "skymap_path",
     type=str,
     help="Sky map JSON file, or a name: lsst (= lsst_cells_v1, Rubin's ring sky map), "
-    "lsst_cells_v2 (default: our own full-sky ring tessellation).",
+    "lsst_cells_v2, DC2_cells_v1 (default: our own full-sky ring tessellation).",
 )
 
 quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress bars.")

@@ -20,18 +20,21 @@ from cellcoadd.model.schemas import schema_documents
 _ERRORS = (CellCoaddFormatError, OSError, ValueError)
 
 
-def patch_summary(path: str, legacy_zero_point: float | None = None) -> dict[str, Any]:
+def patch_summary(
+    path: str, legacy_zero_point: float | None = None, skymap: str | None = None
+) -> dict[str, Any]:
     """Summary of a patch file without reading pixel data (used by ``cellcoadd info``).
 
     ``legacy_zero_point``: for an lsst.cell_coadds file in ``legacy`` units that does not
-    record its zero point (see :func:`cellcoadd.io.api.open`).
+    record its zero point; ``skymap``: the name of the sky map of an lsst.cell_coadds file
+    whose ``SKYMAP`` cellcoadd does not know (see :func:`cellcoadd.io.api.open`).
 
     Keys: file, format, format_version, size_bytes, software_version, tract, patch, band,
     units, zero_point (AB mag of the pixel values), n_noise, psf_size, planes, cells
     (counts), inputs (totals by status), per_cell (one entry per cell: index, kind, used,
     rejected by reason).
     """
-    with api.open(path, legacy_zero_point=legacy_zero_point) as coadd_file:
+    with api.open(path, legacy_zero_point=legacy_zero_point, skymap=skymap) as coadd_file:
         meta = coadd_file.metadata
         table = coadd_file.read_inputs()
         layout = coadd_file.format_name
@@ -168,13 +171,30 @@ _legacy_zero_point_option = click.option(
     "not record one (Rubin's are usually 27); refused when the file records another.",
 )
 
+_skymap_name_option = click.option(
+    "--skymap",
+    "skymap_name",
+    default=None,
+    metavar="NAME",
+    help="Sky map of an lsst.cell_coadds file whose SKYMAP keyword cellcoadd does not know "
+    "(lsst_cells_v1, lsst_cells_v2, DC2_cells_v1, lsst); checked against the file's grid "
+    "and WCS.",
+)
+
 
 @click.command("info")
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--cells", "per_cell", is_flag=True, help="Also list every cell's inputs.")
 @_legacy_zero_point_option
-def info_command(path: str, as_json: bool, per_cell: bool, legacy_zero_point: float | None) -> None:
+@_skymap_name_option
+def info_command(
+    path: str,
+    as_json: bool,
+    per_cell: bool,
+    legacy_zero_point: float | None,
+    skymap_name: str | None,
+) -> None:
     """Summarise a stored patch coadd (no pixel data is read).
 
     \b
@@ -184,7 +204,7 @@ def info_command(path: str, as_json: bool, per_cell: bool, legacy_zero_point: fl
       cellcoadd info patch.h5 --json > summary.json
     """
     try:
-        summary = patch_summary(path, legacy_zero_point)
+        summary = patch_summary(path, legacy_zero_point, skymap_name)
     except _ERRORS as err:
         raise click.ClickException(str(err)) from err
     if as_json:
@@ -210,6 +230,7 @@ def info_command(path: str, as_json: bool, per_cell: bool, legacy_zero_point: fl
     help="Write the LSST lsst.cell_coadds FITS layout (a .fits DESTINATION).",
 )
 @_legacy_zero_point_option
+@_skymap_name_option
 def convert_command(
     source: str,
     destination: str,
@@ -217,6 +238,7 @@ def convert_command(
     overwrite: bool,
     layout: api.Layout | None,
     legacy_zero_point: float | None,
+    skymap_name: str | None,
 ) -> None:
     """Copy a patch coadd into another layout (chosen by the file name), bit for bit.
 
@@ -239,6 +261,7 @@ def convert_command(
             overwrite=overwrite,
             layout=layout,
             legacy_zero_point=legacy_zero_point,
+            skymap=skymap_name,
         )
     except FileExistsError as err:
         raise click.ClickException(f"{destination} exists; use --overwrite to replace it") from err

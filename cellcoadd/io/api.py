@@ -413,17 +413,19 @@ def convert(
     overwrite: bool = False,
     layout: Layout | None = None,
     legacy_zero_point: float | None = None,
+    skymap: str | None = None,
 ) -> Path:
     """Copy a patch file into another layout or compression, losslessly.
 
     ``layout="cell_coadds"`` writes the LSST ``lsst.cell_coadds`` layout (see :func:`write`);
-    such a source is recognised by its headers (``legacy_zero_point``: see :func:`open`).
+    such a source is recognised by its headers (``legacy_zero_point``, ``skymap``: see
+    :func:`open`).
     """
     file_format(destination)  # fail on a bad name before reading anything
     if Path(os.fspath(destination)).exists() and not overwrite:
         raise exists_error(destination)
     return write(
-        read(source, legacy_zero_point=legacy_zero_point),
+        read(source, legacy_zero_point=legacy_zero_point, skymap=skymap),
         destination,
         compression=compression,
         overwrite=overwrite,
