@@ -5,8 +5,10 @@ In short: a primary HDU holding only the tract WCS; an unnamed binary table with
 per cell (grid-local ``cell_id`` and the outer-box planes ``image``, ``mask``,
 ``variance``, ``psf``, ``maskfrac``, ``noise_00``...) whose header carries the grid and
 identity keywords; tables ``CELL`` (the inputs used by each cell), ``VISIT``, ``MASKDEF``,
-``VISIT_SUMMARY`` and ``APCORR`` (per-cell aperture corrections: none here, so only the
-cell ``x``, ``y`` columns). Every HDU has CHECKSUM/DATASUM. The cell table header also
+``VISIT_SUMMARY`` and ``APCORR`` (per-cell aperture corrections: every column kept from a
+Rubin file, ``PatchMetadata.aperture_corrections``; without them only the cell ``x``,
+``y`` columns). ``INBBOX`` is the grid box grown by the cell border, as Rubin writes it.
+Every HDU has CHECKSUM/DATASUM. The cell table header also
 carries ``MAGZERO`` for counts (``TUNIT2 = 'legacy'``) and ``TRACTPIX``, the tract side:
 keywords the LSST writer adds for any extra metadata and its reader ignores.
 
@@ -469,7 +471,8 @@ def _write_table(fits: fitsio.FITS, table: np.ndarray, extname: str, keys: list[
 
 def check_writable(patch: PatchCoadd, path: str, stored: list[CellCoadd] | None = None) -> None:
     """Refuse, naming ``path``, a patch the layout cannot hold: one without any cell with
-    data (lsst.cell_coadds neither writes nor reads a patch without cells)."""
+    data (lsst.cell_coadds neither writes nor reads a patch without cells), or aperture
+    corrections of cells that are not the patch's."""
     if stored is None:
         stored = _stored_cells(patch)
     if not stored:
