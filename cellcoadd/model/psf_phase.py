@@ -15,8 +15,10 @@ What is stored
 --------------
 Per cell and used input, in the order of the cell's used input records:
 
-* ``psf_phase`` ``(n_used, m, m)`` float32: the input's effective PSF at the exposure
-  position of the cell-centre pixel, sampled every ``1 / PHASE_OVERSAMPLING`` exposure
+* ``psf_phase`` ``(n_used, m, m)`` float32: the input's effective PSF near the cell (the
+  builder draws it once per exposure and 256-pixel square, at the square's centre, for
+  the cells there: the model's change over half a square scales the phase term by
+  ~1e-2 at most), sampled every ``1 / PHASE_OVERSAMPLING`` exposure
   pixels over ``[-PHASE_HALF, PHASE_HALF]`` exposure pixels in each axis around the
   source (``m = 2 PHASE_HALF PHASE_OVERSAMPLING + 1``; ``[j, i]`` is the offset
   ``((i - c) / N, (j - c) / N)``, ``c = (m - 1) / 2``), per unit exposure-pixel area
@@ -33,7 +35,8 @@ and of the stored stamps (:attr:`CellCoadd.psf` and its corners), warping with t
 kernel, and returns the weighted difference. Added to the stamps' spatial interpolation it
 gives the coadd PSF of a star at that position; only the phase-dependent *difference*
 comes from this compact model (the wings, well sampled, change with the phase by far less),
-so its truncation and interpolation errors enter at second order.
+so its truncation and interpolation errors enter at second order. Each render is of a
+unit-flux source (the core's pixels at that phase summed to 1), as a PSF model draws one.
 """
 
 from __future__ import annotations
