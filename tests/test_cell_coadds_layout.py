@@ -118,6 +118,38 @@ def test_mask_planes_carry_rubin_names(tmp_path, patch):
     assert api.read(lsst).metadata.mask_bits == patch.metadata.mask_bits  # and back
 
 
+def test_rubin_plane_names_both_ways():
+    from cellcoadd.io.foreign.mask_planes import from_rubin, to_rubin
+
+    ours = {"EDGE": 4, "SAT": 1, "NO_DATA": 8, "DETECTED": 5, "UNMASKEDNAN": 9}
+    afw = {"SENSOR_EDGE": 4, "SAT": 1, "NO_DATA": 8, "DETECTED": 5, "UNMASKEDNAN": 9}
+    assert to_rubin(ours, "afw") == afw and from_rubin(afw, "afw") == ours
+    images = to_rubin(ours, "lsst_images")
+    assert images == {
+        "SENSOR_EDGE": 4,
+        "SATURATED": 1,
+        "NO_DATA": 8,
+        "DETECTED": 5,
+        "UNMASKED_NAN": 9,
+    }
+    assert from_rubin(images, "lsst_images") == ours
+    # a Rubin coadd's EDGE (the detection edge, beside its SENSOR_EDGE): lsst-images'
+    # DETECTION_EDGE, and back; alone, lsst-images' DETECTION_EDGE is never our EDGE
+    rubin = {"EDGE": 4, "SENSOR_EDGE": 6, "NO_DATA": 8}
+    assert to_rubin(rubin, "lsst_images") == {"DETECTION_EDGE": 4, "SENSOR_EDGE": 6, "NO_DATA": 8}
+    assert from_rubin(to_rubin(rubin, "lsst_images"), "lsst_images") == rubin
+    assert from_rubin({"DETECTION_EDGE": 4, "NO_DATA": 8}, "lsst_images") == {
+        "DETECTION_EDGE": 4,
+        "NO_DATA": 8,
+    }
+    # kept from lsst-images, written for afw under afw's name
+    assert to_rubin({"DETECTION_EDGE": 4, "EDGE": 6, "NO_DATA": 8}, "afw") == {
+        "EDGE": 4,
+        "SENSOR_EDGE": 6,
+        "NO_DATA": 8,
+    }
+
+
 def test_an_empty_cell_that_is_not_canonical_keeps_a_row(tmp_path):
     original = make_patch(seed=5, empty=((1, 1),))
     cell = original[1, 1]

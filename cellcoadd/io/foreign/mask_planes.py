@@ -64,10 +64,14 @@ def to_rubin(bits: dict[str, int], flavour: Flavour) -> dict[str, int]:
 
     For lsst-images, the names of Rubin's own planes that are left (a Rubin coadd's
     ``EDGE``, when our ``EDGE`` could not become ``SENSOR_EDGE``) then get lsst-images'
-    names (:data:`RUBIN_LSST_IMAGES`)."""
+    names (:data:`RUBIN_LSST_IMAGES`); for afw, lsst-images' names of those planes (kept
+    from a coadd imported from lsst-images: ``DETECTION_EDGE``) get afw's (``EDGE``)."""
     table = {ours: names[_COLUMN[flavour]] for ours, names in RUBIN_PLANES.items()}
     out = _rename(bits, table)
-    return _rename(out, RUBIN_LSST_IMAGES) if flavour == "lsst_images" else out
+    if flavour == "lsst_images":
+        return _rename(out, RUBIN_LSST_IMAGES)
+    # lsst-images names kept from a Rubin coadd imported from lsst-images: afw's names
+    return _rename(out, {new: old for old, new in RUBIN_LSST_IMAGES.items()})
 
 
 def from_rubin(bits: dict[str, int], flavour: Flavour) -> dict[str, int]:
