@@ -1,7 +1,9 @@
-"""Property-based fuzzing of manifests, build configurations and survey headers (slow).
+"""Property-based fuzzing of manifests, build configurations, survey headers and exposure
+index rows (slow).
 
-Each property: whatever the document or header, the reader returns a valid object or
-raises the library's own error naming the file; never another exception, never a hang.
+Each property: whatever the document, header or row, the reader returns a valid object or
+raises the library's own error naming the file (the row); never another exception, never
+a hang.
 Run with ``pytest -m slow tests/test_hostile_fuzz.py``.
 """
 
