@@ -47,6 +47,10 @@ def test_forecast_quotes_the_stored_table():
     assert model.forecast("metacal", "coadd", 20.0, "wmom").scale == 0.92  # type: ignore[union-attr]
     assert f"{2.6e-3 / 20:.2g}" in expected_precision("10000", n)
     assert "metacal admom coadd, S/N >= 1000" in expected_precision("10000", n)
+    # objects at random positions: metacal's scatter doubles (its own row)
+    at_random = expected_precision("10000", n, object_offset=5.0)
+    assert f"{4.8e-3 / 20:.2g}" in at_random and "random positions" in at_random
+    assert model.forecast("metacal", "multi-epoch", 1e4, offset=True).scale == 1.9e-3  # type: ignore[union-attr]
     bfd = expected_precision("10000", n, shear=1e-3, method="bfd", mode="multi-epoch")
     assert f"{9.6e-3 / 20:.2g}" in bfd and "measured at" not in bfd
     # another input shear: the pixel-noise error scales as the row's shear / |g|

@@ -318,7 +318,7 @@ def validate_shear(
     if not quiet and not as_json:
         click.echo(
             f"{n_objects} +g/-g pairs at S/N {snr_text}, g1 = {shear:g}: "
-            f"{expected_precision(snr_text, n_objects, shear, method, mode, shape)}",
+            f"{expected_precision(snr_text, n_objects, shear, method, mode, shape, object_offset)}",
             err=True,
         )
     result = run_validation(
@@ -356,7 +356,7 @@ def validate_shear(
             f"({result['cpu_seconds'] / result['n_objects']:.2f} s per pair)"
         )
         click.echo(precision_advice(result["m1_err"], result["n_objects"]))
-        row = forecast(method, mode, _lowest_snr(snr_text), shape)
+        row = forecast(method, mode, _lowest_snr(snr_text), shape, object_offset > 0)
         click.echo(
             target_cost(
                 result["m1_err"],
@@ -420,6 +420,7 @@ def expected_precision(
     method: str = "metacal",
     mode: str = "coadd",
     shape: str = "admom",
+    object_offset: float = 0.0,
 ) -> str:
     """What error on m1 to expect before the run: the stored row of the forecast table
     (:func:`~cellcoadd.pipelines.validation.bias_precision.forecast`) for the method,
@@ -432,7 +433,7 @@ def expected_precision(
     """
     snr = parse_snr(snr_text)
     root = math.sqrt(n_objects)
-    row = forecast(method, mode, _lowest_snr(snr_text), shape)
+    row = forecast(method, mode, _lowest_snr(snr_text), shape, object_offset > 0)
     if row is not None:
         scale = forecast_scale(row, shear)
         note = (
