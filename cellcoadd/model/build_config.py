@@ -96,8 +96,8 @@ class BuildConfig(BaseModel):
         :meth:`CellCoadd.psf_at` gives the PSF of a star at any pixel of the cell, with
         the phase at which each input meets it (without it the stamps hold the phases of
         their own pixels only). With ``psf_corners`` too it equals a star's coadded image
-        to ~1e-4 anywhere in the inner box, DECam PSFEx included. Off by default: ~5% of
-        a build alone, ~30% with the corners, 17 kB per used input and cell (cost and
+        to ~1e-4 anywhere in the inner box, DECam PSFEx included. Off by default: 4-5% of
+        a build alone, ~40% with the corners, 17 kB per used input and cell (cost and
         accuracy: ``docs/shear.md``). Left out of the stored JSON when off, like
         ``psf_corners``.
     """
