@@ -20,7 +20,13 @@ server):
 
 Files that cannot be described are stored too, with the reason (status ``bad``), and
 listed; files that vanished since they were indexed are marked ``vanished``. Queries
-return only ``ok`` rows.
+return only ``ok`` rows. A file is bad, and only it, when its footprint is degenerate or
+overlaps more than :data:`~cellcoadd.geometry.footprint.MAX_FOOTPRINT_PIXELS` HEALPix
+pixels (checked before they are listed, in the describing process), or when another file
+already holds its (visit, detector). A row that disagrees with its checksum is read again
+by the next update (or marked bad); one whose columns do not decode raises
+:class:`~cellcoadd.errors.IndexRowError` naming the index, the row, the file and the
+column when used.
 
 Footprints are the polygon of the valid box's corners pushed outward by
 :data:`FOOTPRINT_MARGIN` pixels (WCS distortion bends the edges between the corners);
@@ -754,8 +760,10 @@ class ExposureIndex:
         IndexRowError
             When a row returned does not match its checksum (names the file, the row and
             the fields that differ from the file).
+        GeometryError
+            For a region over 2**24 HEALPix pixels, or a degenerate one.
         """
-        pixels = healpix_pixels(self.nside, np.asarray(corners, dtype=float))
+        pixels = healpix_pixels(self.nside, np.asarray(corners, dtype=float), _MAX_QUERY_PIXELS)
         ids: set[int] = set()
         for start in range(0, len(pixels), _CHUNK):
             part = [int(p) for p in pixels[start : start + _CHUNK]]
@@ -999,6 +1007,10 @@ class ExposureIndex:
 
 #: Values per ``IN (...)`` list (SQLite allows 999 parameters in old versions).
 _CHUNK = 900
+
+#: Most HEALPix pixels a query region may cover (128 MiB of pixel numbers): an LSST tract
+#: (1.7 deg on a side) covers ~4 million at the finest nside, 65536.
+_MAX_QUERY_PIXELS = 1 << 24
 
 #: Why a damaged row not read again in an update is marked bad.
 _DAMAGED_ROW = "its index row was damaged (it disagrees with its checksum): index the file again"
