@@ -2,7 +2,7 @@
 patch of ``bench_build_patch.py`` built serially without them, with each and with both,
 interleaved.
 
-Run as ``.venv/bin/python benchmarks/psf_phase_cost.py [--cells 6] [--ccd 400]
+Run as ``.venv/bin/python benchmarks/psf_phase_cost.py [--inside] [--cells 6] [--ccd 400]
 [--visits 20] [--psf-size 35] [--rounds 4]`` (the defaults: the demo-sized patch of 64 cells
 and 180 exposures, ~1 CPU minute). Prints the CPU seconds of this process (the build is
 serial, so they are the build's, and are less disturbed by other load than wall-clock
@@ -28,11 +28,52 @@ from bench_build_patch import (  # noqa: E402
     warm_up_cell,
 )
 
+import cellcoadd.builder.cell as cell_module  # noqa: E402
 from cellcoadd.builder.cell import build_cell  # noqa: E402
 from cellcoadd.builder.patch import build_patch  # noqa: E402
 from cellcoadd.errors import PsfStampWarning  # noqa: E402
 from cellcoadd.model.build_config import BuildConfig  # noqa: E402
 from cellcoadd.sim import simulate_field  # noqa: E402
+
+
+def timed_inside(patch, exposures, psf_size: int, rounds: int) -> None:
+    """The CPU time of the phase terms' own calls (core draws, affine maps) and of the PSF
+    stamps (centre and corners) against the rest of the same serial build, which the
+    machine's load disturbs far less than comparing separate builds."""
+    spent = {"phase": 0.0, "stamps": 0.0}
+    originals = (cell_module.CellBlock._core, cell_module.input_map,
+                 cell_module.coadd_psf_contribution)  # fmt: skip
+
+    def timed(function, key):
+        def call(*args):
+            start = time.process_time()
+            try:
+                return function(*args)
+            finally:
+                spent[key] += time.process_time() - start
+
+        return call
+
+    cell_module.CellBlock._core = timed(originals[0], "phase")  # type: ignore[method-assign]
+    cell_module.input_map = timed(originals[1], "phase")
+    cell_module.coadd_psf_contribution = timed(originals[2], "stamps")
+    try:
+        for corners in (False, True):
+            config = BuildConfig(n_noise=3, psf_size=psf_size, psf_phase=True, psf_corners=corners)
+            for _ in range(rounds):
+                spent.update(phase=0.0, stamps=0.0)
+                start = time.process_time()
+                build_patch(patch, exposures, config, seed=1, progress=False, workers=1)
+                total = time.process_time() - start
+                rest = total - spent["phase"]
+                print(
+                    f"  corners {corners!s:5}  build {total:5.2f} s  phase terms "
+                    f"{spent['phase']:.3f} s ({100 * spent['phase'] / rest:.1f}% of the rest)"
+                    f"  PSF stamps {spent['stamps']:.2f} s"
+                )
+    finally:
+        (cell_module.CellBlock._core, cell_module.input_map,
+         cell_module.coadd_psf_contribution) = originals  # type: ignore[method-assign]  # fmt: skip
 
 
 def main() -> None:
@@ -42,6 +83,9 @@ def main() -> None:
     parser.add_argument("--visits", type=int, default=20)
     parser.add_argument("--psf-size", type=int, default=35)
     parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument(
+        "--inside", action="store_true", help="time the phase terms inside each build instead"
+    )
     args = parser.parse_args()
     warnings.simplefilter("ignore", PsfStampWarning)
 
@@ -60,6 +104,10 @@ def main() -> None:
     for config in configs.values():  # imports, numba caches
         cell, candidates = warm_up_cell(patch, exposures, config)
         build_cell(cell, candidates, config)
+    if args.inside:
+        print(f"{len(patch.cells)} cells, {len(exposures)} exposures, psf_size {args.psf_size}")
+        timed_inside(patch, exposures, args.psf_size, args.rounds)
+        return
     print(
         f"{len(patch.cells)} cells, {len(exposures)} exposures, psf_size {args.psf_size}; "
         "variant, CPU s, wall s, load"
