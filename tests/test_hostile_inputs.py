@@ -1185,6 +1185,17 @@ def test_a_gzip_stream_declaring_a_huge_plane_is_refused_from_its_header(
     error = _refused(read_lsst_exposure, forged, psf, zero_point=30.0, match="20000 x 20000")
     assert "visit.fits.fz" in str(error) and "HDU 0" in str(error)
     assert "(400000000 pixels), more than the 67108864 accepted" in str(error)
+    # behind the 5 HDUs of a real file too: each header is read where the last data ends
+    cards = [
+        "XTENSION= 'IMAGE   '", "BITPIX  =                  -32",
+        "NAXIS   =                    2", "NAXIS1  =                20000",
+        "NAXIS2  =                20000", "PCOUNT  =                    0",
+        "GCOUNT  =                    1", "END",
+    ]  # fmt: skip
+    extension = b"".join(f"{card:<80}".encode() for card in cards).ljust(2880)
+    appended = tmp_path / "appended.fits.gz"
+    appended.write_bytes(gzip.compress(lsst_file.read_bytes() + extension + bytes(1 << 20)))
+    _refused(read_lsst_exposure, appended, psf, zero_point=30.0, match="HDU 5 declares a 20000")
     good = tmp_path / "good.fits"
     shutil.copy(lsst_file, good)
     with ExposureIndex(tmp_path / "inputs.sqlite") as index:

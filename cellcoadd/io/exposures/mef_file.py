@@ -79,7 +79,7 @@ def check_gzip_stream(path: str, resolved: str) -> int:
             header, hdu = first, 0
             while header:
                 # the whole header first (bounded), then its declared data, skipped
-                while b"END" + b" " * 77 not in _cards_of(header):
+                while not _ends_header(header[-_BLOCK:]):
                     block = read(stream, _BLOCK)
                     if len(block) < _BLOCK or len(header) >= _MAX_HEADER_BLOCKS * _BLOCK:
                         header = b""  # truncated or endless: CFITSIO refuses it later
@@ -100,8 +100,12 @@ def check_gzip_stream(path: str, resolved: str) -> int:
     return total
 
 
-def _cards_of(header: bytes) -> list[bytes]:
-    return [header[i : i + 80] for i in range(0, len(header), 80)]
+def _ends_header(block: bytes) -> bool:
+    """Whether a header block holds the ``END`` card."""
+    return any(block[i : i + 80] == _END_CARD for i in range(0, len(block), 80))
+
+
+_END_CARD = b"END" + b" " * 77
 
 
 def _data_blocks(cards: dict[str, str]) -> int:
