@@ -432,8 +432,9 @@ def check_planes(cell: CellCoadd, present: tuple[str, ...], *, optional_only: bo
         plane = (missing or extra)[0]
         raise InvalidCoaddError(
             f"cell {cell.index} {'lacks' if missing else 'has'} the plane {plane!r}: it "
-            f"holds the planes {list(held)}, the patch's cells {list(present)} (as its "
-            "build configuration declares): all the cells of a patch hold the same planes",
+            f"holds the {'optional ' if optional_only else ''}planes {list(held)}, the "
+            f"patch's cells hold {list(wanted)} (as its build configuration declares): all the "
+            "cells of a patch hold the same planes",
             cell=cell.index,
             value=plane,
             allowed=tuple(present),
