@@ -129,9 +129,10 @@ def healpix_pixels(
     try:
         found = hpgeom.query_polygon(nside, corners[:, 0], corners[:, 1], inclusive=True, nest=True)
     except (ValueError, RuntimeError) as err:  # hpgeom: "Polygon has degenerate corner."
+        shown = ", ".join(f"({ra:.9f}, {dec:.9f})" for ra, dec in corners)
         raise GeometryError(
-            f"a degenerate footprint polygon ({err}): its corners {corners.tolist()} (deg) "
-            "are not distinct points around a convex area (a pixel scale far too small?)",
+            f"a degenerate footprint polygon ({err}): its corners {shown} (deg) are not "
+            "distinct points around a convex area (a pixel scale far too small?)",
             value=corners.tolist(),
         ) from None
     return np.asarray(found, dtype=np.int64)
