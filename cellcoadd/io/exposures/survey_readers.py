@@ -99,6 +99,10 @@ def _wcs(path: str, header: fits.Header, what: str) -> WCS:
                 raise CellCoaddFormatError(
                     path, f"{what}: {key} = {order} is outside 0..{MAX_SIP_ORDER}"
                 )
+    for key, value in header.items():
+        # astropy raises AttributeError on a boolean CTYPE1 (found by the header fuzz)
+        if key.startswith(("CTYPE", "CUNIT", "RADESYS")) and not isinstance(value, str):
+            raise CellCoaddFormatError(path, f"{what}: {key} = {value!r} is not a string")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
