@@ -106,6 +106,7 @@ def _classic(patch, path):
         {"n_noise": 0},
         {"n_noise": 2, "band": "\u00e9\u03c0"},
         {"n_noise": 3, "psf_size": 7, "empty": ((1, 1),)},
+        {"n_noise": 1, "psf_corners": True, "psf_phase": True, "empty": ((0, 1), (2, 2))},
     ],
 )
 def test_direct_file_identical_to_cfitsio(tmp_path, kwargs):

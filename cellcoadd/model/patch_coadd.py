@@ -66,7 +66,10 @@ from cellcoadd.model.units import (
 #: 1.5: the optional planes ``psf_phase`` and ``psf_maps`` (``BuildConfig.psf_phase``), one
 #: layer per used input (``HDU_PSF_PHASE``, ``HDU_PSF_MAPS``, as ``psf_corners``).
 #: also in 1.5: the optional ``aperture_corrections`` (kept from a Rubin coadd's ``APCORR``).
-FORMAT_VERSION = "1.5"
+#: 1.6: an empty cell's planes stored without pixels (FITS ``CCEMPTY`` header-only HDUs,
+#: HDF5 ``(0,)`` datasets with ``empty``; see :mod:`cellcoadd.io.coadd.empty_cells`): a
+#: 1.5 reader refuses such a file.
+FORMAT_VERSION = "1.6"
 
 #: The first format version whose ``units`` is an astropy unit string.
 UNITS_VERSION = (1, 2)

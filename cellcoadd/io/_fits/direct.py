@@ -301,8 +301,10 @@ def image_data(data: np.ndarray, scratch: Scratch | None = None) -> ImageData:
     data = np.ascontiguousarray(data)
     if not data.dtype.isnative:  # the same values in native order (bits kept)
         data = data.byteswap().view(data.dtype.newbyteorder())
+    if data.ndim and not data.size:  # no pixels: NAXIS = 0, as CFITSIO writes it
+        return ImageData(16, (), memoryview(b""), b"", 0, 0)
     bitpix = _BITPIX.get((data.dtype.kind, data.dtype.itemsize))
-    if bitpix is None or data.ndim == 0 or data.size == 0:
+    if bitpix is None or data.ndim == 0:
         raise UnsupportedCard(f"image of {data.dtype} {data.shape}")
     words = data.reshape(-1).view(np.uint32)  # the same 32-bit words in any byte order
     datasum = _fold(int(np.add.reduce(words, dtype=np.uint64)))
@@ -452,8 +454,8 @@ def _hdu_size(hdu: _QueuedHdu) -> int:
     """Bytes of an HDU written by :func:`image_header`/:func:`table_hdu`: header cards
     (the type's own, the keys, CHECKSUM, DATASUM, END) and data, each filled to blocks."""
     is_image, array, _, keys = hdu
-    if is_image:
-        own = 6 + array.ndim  # XTENSION BITPIX NAXIS NAXISn PCOUNT GCOUNT EXTNAME
+    if is_image:  # XTENSION BITPIX NAXIS NAXISn PCOUNT GCOUNT EXTNAME (no pixels: NAXIS 0)
+        own = 6 + (array.ndim if array.size else 0)
     else:
         own = 9 + 2 * len(array.dtype.names or ())  # and TFIELDS, TTYPEn, TFORMn
     header = (own + len(keys) + 3) * _CARD

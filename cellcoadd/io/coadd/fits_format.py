@@ -70,6 +70,7 @@ from cellcoadd.io.coadd.cell_records import (
     parse_cell_record,
 )
 from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.empty_cells import EMPTY_KEY, empty_plane, planes_without_pixels
 from cellcoadd.io.coadd.format_version import (
     FILE_KIND,
     MAX_METADATA_BYTES,
@@ -166,6 +167,9 @@ def write_fits_cells(
     stabilise_fits_checksums(path)
 
 
+#: The data of an HDU without pixels (an empty cell's plane, see empty_cells).
+_NO_PIXELS = np.zeros((0,), dtype=np.int16)
+
 #: Cells written together by the direct writer (its threads share them out).
 _BATCH = 8
 
@@ -216,10 +220,12 @@ def _write_fits(
     meta = metadata
     # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
     unit_cards = meta.unit_cards()
+    no_data = meta.mask_bits.value("NO_DATA")
     wcs_records = WcsRecords()
     index_table, records = _index_table(identities, planes, wcs_records)
     arriving = _checked(cells, identities, records, wcs_records, present)
-    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True) as fits:
+    # ignore_empty: header-only HDUs (an empty cell's planes) after the primary one
+    with fitsio.FITS(cfitsio_path(path), "rw", clobber=True, ignore_empty=True) as fits:
         fits.write(
             None,
             header=[
@@ -248,7 +254,9 @@ def _write_fits(
         if not direct:
             hdus: _CfitsioHdus | fits_direct.DirectHdus = _CfitsioHdus(fits, compress)
             for cell in arriving:
-                _write_cell(hdus, cell, plane_cards=unit_cards, records=wcs_records)
+                _write_cell(
+                    hdus, cell, plane_cards=unit_cards, records=wcs_records, no_data=no_data
+                )
             # Readers check the length against it instead of walking every header to the end.
             size = fits[-1].get_offsets()["data_end"]
             fits[0].write_key("FILESIZE", size, comment="bytes in this file")
@@ -260,7 +268,9 @@ def _write_fits(
         for batch in iter(lambda: list(itertools.islice(arriving, _BATCH)), []):
             writer = fits_direct.DirectHdus()
             for cell in batch:
-                _write_cell(writer, cell, plane_cards=unit_cards, records=wcs_records)
+                _write_cell(
+                    writer, cell, plane_cards=unit_cards, records=wcs_records, no_data=no_data
+                )
             size = writer.write(stream, size)
             del batch, writer  # written: let go before the next batch comes
         stream.truncate(size)
@@ -359,7 +369,11 @@ class _CfitsioHdus:
 
     def image(self, plane: str, data: np.ndarray, name: str, keys: list[dict[str, Any]]) -> None:
         compression = cell_planes.plane(plane).compression if self.compress else "none"
-        if compression == "float_bits":
+        if not data.size:  # no pixels: a header-only HDU (NAXIS = 0, BITPIX = 16)
+            self.fits.create_image_hdu(dims=None, dtype=np.int16, extname=name)
+            self.fits[-1].write_keys([*keys, DATACRC_PLACEHOLDER])
+            self.fits[-1].write_checksum()
+        elif compression == "float_bits":
             keys = [*keys, *_nonfinite_keys(data)]
             _write_image(self.fits, data, name, keys, compress="GZIP_2")
         elif compression == "integer":
@@ -432,16 +446,25 @@ def _write_cell(
     *,
     plane_cards: dict[str, list[tuple[str, object, str]]] | None = None,
     records: WcsRecords | None = None,
+    no_data: int = 0,
 ) -> None:
+    """The HDUs of ``cell``: its planes (an empty cell's without pixels, see
+    :mod:`~cellcoadd.io.coadd.empty_cells`; ``no_data``: the ``NO_DATA`` bit's value),
+    then its inputs table."""
     keys: list[dict[str, Any]] = [
         {"name": "CELL_X", "value": cell.index[0], "comment": "tract-global cell index x"},
         {"name": "CELL_Y", "value": cell.index[1], "comment": "tract-global cell index y"},
     ]
+    bare = planes_without_pixels(cell, no_data)
     for plane in _cell_planes(cell.n_noise, cell.plane_names):
         name = extname(cell.index, plane)
         plane_keys: list[dict[str, Any]] = [*keys, {"name": "PLANE", "value": plane}]
         if plane == cell_planes.INPUTS:
             hdus.table(inputs_to_array(cell.inputs, ascii_only=True), name, plane_keys)
+            continue
+        if plane in bare:  # an empty cell's plane: a header saying so, no pixels (1.6)
+            empty = {"name": EMPTY_KEY, "value": True, "comment": "no data: NaN or NO_DATA"}
+            hdus.image(plane, _NO_PIXELS, name, [*plane_keys, empty])
             continue
         plane_keys += [
             {"name": key, "value": value, "comment": comment}
@@ -451,11 +474,7 @@ def _write_cell(
             # Standard WCS cards so viewers can place every pixel plane; the exact WCS is in
             # CELLINDEX.
             plane_keys += _wcs_cards(cell, records)
-        data = getattr(cell, plane)
-        if cell_planes.plane(plane).per_input and not len(data):
-            # no zero-size images in FITS: a cell without used inputs stores one zero layer
-            data = np.zeros((1, *data.shape[1:]), dtype=data.dtype)
-        hdus.image(plane, data, name, plane_keys)
+        hdus.image(plane, getattr(cell, plane), name, plane_keys)
 
 
 def _wcs_cards(cell: CellCoadd, records: WcsRecords | None = None) -> list[dict[str, Any]]:
@@ -645,21 +664,32 @@ class FitsCoaddFile(CoaddFile):
             if spec.optional and number == -1:  # not stored: None
                 continue
             shape = shapes[spec.name]
-            if spec.per_input and not shape[0]:  # one zero layer stands for none
-                layer = self._read_plane(key, spec.name, number, (1, *shape[1:]))
+            empty = n_used == 0  # only then may a plane be stored without pixels
+            if spec.per_input and not shape[0]:  # before 1.6: one zero layer stands for none
+                layer = self._read_plane(key, spec.name, number, (1, *shape[1:]), empty)
                 planes[spec.name] = layer[:0]
                 continue
-            planes[spec.name] = self._read_plane(key, spec.name, number, shape)
+            planes[spec.name] = self._read_plane(key, spec.name, number, shape, empty)
         with reading_errors(self.path, f"cell {key} contents"):
             common = self.metadata.cell_common  # a cell read alone describes itself
             return CellCoadd(**planes, inputs=inputs, **identity, common=common)
 
     def _read_plane(
-        self, key: tuple[int, int], plane: str, number: int, shape: tuple[int, ...]
+        self,
+        key: tuple[int, int],
+        plane: str,
+        number: int,
+        shape: tuple[int, ...],
+        empty: bool = False,
     ) -> np.ndarray:
+        """The plane of ``shape`` stored in HDU ``number``; ``empty``: the cell has no
+        used input, so the HDU may hold no pixels (``CCEMPTY``, format 1.6)."""
         hdu = self._hdu(number, extname(key, plane))
         with reading_errors(self.path, f"cell {key} plane {plane}"):
             dims = tuple(hdu.get_dims())
+            if not dims and empty and hdu.read_header().get(EMPTY_KEY) is True:
+                no_data = self.metadata.mask_bits.value("NO_DATA")
+                return empty_plane(cell_planes.plane(plane), shape, no_data)
             if dims != shape:
                 raise DamagedDataError(f"dimensions {dims}, expected {shape}", cell=key)
             header = hdu.read_header()

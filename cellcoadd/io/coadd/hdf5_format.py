@@ -39,6 +39,12 @@ from cellcoadd.io.coadd.cell_records import (
     parse_cell_record,
 )
 from cellcoadd.io.coadd.coadd_file import CoaddFile
+from cellcoadd.io.coadd.empty_cells import (
+    EMPTY_ATTRIBUTE,
+    EMPTY_VALUE,
+    empty_plane,
+    planes_without_pixels,
+)
 from cellcoadd.io.coadd.format_version import (
     FILE_KIND,
     MAX_METADATA_BYTES,
@@ -104,7 +110,7 @@ def write_hdf5_cells(
     with (
         ObjectMaker(compress, _LIBVER) as maker,
         h5py.File(path, "w", libver=_LIBVER) as h5,
-        _PreparedCells(cells, compress) as prepared,
+        _PreparedCells(cells, compress, metadata.mask_bits.value("NO_DATA")) as prepared,
     ):
         # Fixed-length byte strings are stored inside the (checksummed) object header.
         contents = contents_json(indices, present).encode("ascii")
@@ -143,6 +149,8 @@ _AHEAD = 1
 class _Prepared(NamedTuple):
     """What writing a cell needs, made ahead (:func:`_prepare_batch`)."""
 
+    #: The planes stored without pixels (an empty cell's, see empty_cells).
+    bare: frozenset[str]
     #: Stored chunks of the non-empty planes and inputs (empty when compressed).
     chunks: dict[str, memoryview]
     #: The inputs table.
@@ -159,9 +167,10 @@ class _PreparedCells:
     batch's buffers are reused once its cells are written. Use as a context manager:
     leaving it stops the worker before the buffers go."""
 
-    def __init__(self, cells: Iterator[CellCoadd], compress: bool) -> None:
+    def __init__(self, cells: Iterator[CellCoadd], compress: bool, no_data: int) -> None:
         self.cells = cells
         self.compress = compress
+        self.no_data = no_data  # the NO_DATA bit's value
         self.records = WcsRecords()  # used by one thread at a time
         self._slots: list[_Slot] = [{} for _ in range(_AHEAD + 2)]
         self._executor: ThreadPoolExecutor | None = None
@@ -212,13 +221,21 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
     (uncompressed) the stored chunks of their non-empty datasets, made together by name."""
     inputs = [inputs_to_array(cell.inputs, ascii_only=False) for cell in batch]
     records = [cell_record_json(cell, cells.records).encode("ascii") for cell in batch]
+    # a per-input plane of an empty cell has its own zero-size shape: no marker needed
+    bare = [
+        frozenset(n for n in planes_without_pixels(c, cells.no_data) if not _per_input(n))
+        for c in batch
+    ]
     chunks: list[dict[str, memoryview]] = [{} for _ in batch]
     present = batch[0].plane_names if batch else ()
     for name in () if cells.compress else (*present, cell_planes.INPUTS):
         arrays = (
             inputs
             if name == cell_planes.INPUTS
-            else [_stored_plane(cell, cell_planes.plane(name)) for cell in batch]
+            else [
+                _stored_plane(cell, cell_planes.plane(name), name in without)
+                for cell, without in zip(batch, bare, strict=True)
+            ]
         )
         sizes = {array.nbytes for array in arrays}
         if sizes == {0}:
@@ -232,7 +249,7 @@ def _prepare_batch(batch: list[CellCoadd], slot: _Slot, cells: _PreparedCells) -
             for number, chunk in zip(numbers, scratch.chunks(group), strict=True):
                 if len(chunk) > 4:  # not an empty dataset
                     chunks[number][name] = chunk
-    return [_Prepared(*made) for made in zip(chunks, inputs, records, strict=True)]
+    return [_Prepared(*made) for made in zip(bare, chunks, inputs, records, strict=True)]
 
 
 def contents_json(indices: list[tuple[int, int]], planes: tuple[str, ...] | None = None) -> str:
@@ -250,8 +267,11 @@ def contents_json(indices: list[tuple[int, int]], planes: tuple[str, ...] | None
     )
 
 
-def _stored_plane(cell: CellCoadd, spec: cell_planes.PlaneSpec) -> np.ndarray:
-    """A plane of ``cell`` as stored: C-contiguous, little-endian, the plane's dtype."""
+def _stored_plane(cell: CellCoadd, spec: cell_planes.PlaneSpec, bare: bool) -> np.ndarray:
+    """A plane of ``cell`` as stored: C-contiguous, little-endian, the plane's dtype;
+    ``bare``: no pixels, shape ``(0,)`` (an empty cell's plane, format 1.6)."""
+    if bare:
+        return np.zeros((0,), dtype=spec.stored_dtype)
     return np.ascontiguousarray(getattr(cell, spec.name), dtype=spec.stored_dtype)
 
 
@@ -282,8 +302,13 @@ def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> No
         # planes share shape and dtype: the name travels with the data so that a moved or
         # swapped dataset is refused rather than read as another plane
         attributes: list[Attribute] = [("plane", plane)]
-        attributes += [(key, value) for key, value, _ in writer.plane_attrs.get(plane, [])]
-        members.append((plane, _stored_plane(cell, spec), attributes, prepared.chunks.get(plane)))
+        bare = plane in prepared.bare
+        if bare:
+            attributes.append((EMPTY_ATTRIBUTE, EMPTY_VALUE))
+        else:
+            attributes += [(key, value) for key, value, _ in writer.plane_attrs.get(plane, [])]
+        data = _stored_plane(cell, spec, bare)
+        members.append((plane, data, attributes, prepared.chunks.get(plane)))
     # one copy of a template group (its datasets and their attributes), then the chunks
     group = maker.group_of(writer.cells, group_name(cell.index), members)
     maker.dataset(
@@ -434,13 +459,25 @@ class Hdf5CoaddFile(CoaddFile):
         inputs = self._read_inputs(key, group)
         n_used = sum(record.is_used for record in inputs)
         shapes = expected_shapes(self.metadata, identity["outer_bbox"], n_used)
-        planes = {}
+        planes: dict[str, Any] = {}  # arrays, by CellCoadd field name
         for spec in cell_planes.PLANES:
             plane, dtype = spec.name, spec.stored_dtype
             if plane not in self._objects:  # an optional plane not stored: None
                 continue
             with reading_errors(self.path, f"cell {key} plane {plane}"):
                 dataset = _plain_dataset(group, plane, self._size)
+                if _attr_text(dataset.attrs.get(EMPTY_ATTRIBUTE, b"")) == EMPTY_VALUE:
+                    # an empty cell's plane, stored without pixels (format 1.6)
+                    if n_used or dataset.shape != (0,) or not _holds(dataset, plane):
+                        raise DamagedDataError(
+                            f"dataset {dataset.name} marked empty in a cell with data, or "
+                            "not holding this plane",
+                            hdu=dataset.name,
+                            cell=key,
+                        )
+                    no_data = self.metadata.mask_bits.value("NO_DATA")
+                    planes[plane] = empty_plane(spec, shapes[plane], no_data)
+                    continue
                 if dataset.shape != shapes[plane]:
                     raise DamagedDataError(
                         f"shape {dataset.shape}, expected {shapes[plane]}",
@@ -452,7 +489,7 @@ class Hdf5CoaddFile(CoaddFile):
                         f"dtype {dataset.dtype}, expected {dtype}", hdu=dataset.name, cell=key
                     )
                 self._check_checksummed(dataset)
-                if _attr_text(dataset.attrs.get("plane", b"")) != plane:
+                if not _holds(dataset, plane):
                     raise DamagedDataError(
                         f"dataset {dataset.name} does not hold plane {plane!r}",
                         hdu=dataset.name,
@@ -558,6 +595,15 @@ def _plain_dataset(group: h5py.Group, name: str, file_size: int) -> h5py.Dataset
             hdu=dataset.name,
         )
     return dataset
+
+
+def _per_input(plane: str) -> bool:
+    return bool(cell_planes.plane(plane).per_input)
+
+
+def _holds(dataset: h5py.Dataset, plane: str) -> bool:
+    """Whether ``dataset`` says it holds ``plane`` (its ``plane`` attribute)."""
+    return _attr_text(dataset.attrs.get("plane", b"")) == plane
 
 
 def _attr_text(value: Any) -> str:
