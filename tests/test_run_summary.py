@@ -89,3 +89,14 @@ def test_a_line_announcing_a_list_runs_into_it():
     assert one_line("bad value\nFor further information visit x\n  at row 3") == (
         "bad value; at row 3"
     )
+
+
+def test_index_lists_a_bad_file_once_on_one_line(inputs, tmp_path):
+    bad = tmp_path / "cut.fits"
+    good = sorted((inputs / "inputs").glob("*.fits"))[0]
+    bad.write_bytes(good.read_bytes()[:5000])
+    done = _cellcoadd("index", str(bad), str(good), "--db", str(tmp_path / "i.sqlite"), "-q")
+    assert done.returncode == 1  # a bad file: non-zero, unless --allow-bad
+    lines = [line for line in done.stderr.splitlines() if str(bad) in line]
+    assert len(lines) == 1 and lines[0].count(str(bad)) == 1, done.stderr
+    assert lines[0].startswith(f"bad: {bad}: ") and "Error:" not in lines[0]

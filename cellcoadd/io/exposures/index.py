@@ -456,8 +456,18 @@ def describe_entry(
     except GeometryError as err:  # the footprint: say at which pixel scale
         return Described(entry, tuple(stamps), reason=f"{err}{_pixel_scale_note(header)}")
     except (CellCoaddError, OSError, ValueError, KeyError, TypeError) as err:
-        return Described(entry, tuple(stamps), reason=f"{type(err).__name__}: {err}")
+        return Described(entry, tuple(stamps), reason=_bad_reason(err, entry.path))
     return Described(entry, tuple(stamps), header_to_json(header), corners, pixels=pixels)
+
+
+def _bad_reason(err: Exception, path: str) -> str:
+    """Why a file is bad, as listed beside its path: our errors in their own words (without
+    the path when it is the file's own), a library's named by its type."""
+    if isinstance(err, CellCoaddFormatError) and os.path.abspath(err.path) == os.path.abspath(path):
+        return err.problem
+    if isinstance(err, CellCoaddError):
+        return str(err)
+    return f"{type(err).__name__}: {err}"
 
 
 def _pixel_scale_note(header: ExposureHeader) -> str:
