@@ -15,15 +15,7 @@ starts. Dask workers get the same through
 
 from __future__ import annotations
 
-import ctypes
-import os
-import sys
-
-from cellcoadd.execution.settings import MMAP_THRESHOLD, TRIM_THRESHOLD
-
-#: ``mallopt`` parameters (glibc's malloc.h); the values are in :mod:`cellcoadd.execution.settings`
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
+from cellcoadd.execution.settings import apply_malloc_settings
 
 
 def keep_freed_memory() -> bool:
@@ -31,17 +23,4 @@ def keep_freed_memory() -> bool:
 
     Nothing is done on other C libraries, or for a setting the environment already gives.
     """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
-    except (OSError, AttributeError):  # not glibc (e.g. musl has no mallopt)
-        return False
-    applied = False
-    for variable, parameter, value in (
-        ("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, MMAP_THRESHOLD),
-        ("MALLOC_TRIM_THRESHOLD_", _M_TRIM_THRESHOLD, TRIM_THRESHOLD),
-    ):
-        if variable not in os.environ:
-            applied = bool(mallopt(ctypes.c_int(parameter), ctypes.c_int(value))) or applied
-    return applied
+    return apply_malloc_settings()

@@ -9,6 +9,9 @@ elsewhere). Results never depend on them; CPU does.
 
 from __future__ import annotations
 
+import ctypes
+import os
+import sys
 from typing import Any
 
 #: glibc ``M_MMAP_THRESHOLD`` (bytes): arrays up to 32 MB stay on the heap instead of being
@@ -48,6 +51,40 @@ DASK_WORKER_CONFIG: dict[str, Any] = {
     "distributed.admin.system-monitor.gil.enabled": False,
     "distributed.worker.memory.monitor-interval": "1s",
 }
+
+
+#: ``mallopt`` parameters (glibc's malloc.h)
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_M_ARENA_MAX = -8
+
+
+def apply_malloc_settings(*, arena_max: int | None = None) -> bool:
+    """Apply :data:`MMAP_THRESHOLD` and :data:`TRIM_THRESHOLD` (and ``arena_max`` arenas,
+    when given) to this process's allocator (glibc only): whether any was applied.
+
+    Nothing is done on other C libraries, or for a setting the environment already gives
+    (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``MALLOC_ARENA_MAX``). For a
+    process that glibc started with these environment variables this changes nothing; a
+    worker forked from another process needs it, since glibc reads them only at start.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
+    except (OSError, AttributeError):  # not glibc (e.g. musl has no mallopt)
+        return False
+    settings = [
+        ("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, MMAP_THRESHOLD),
+        ("MALLOC_TRIM_THRESHOLD_", _M_TRIM_THRESHOLD, TRIM_THRESHOLD),
+    ]
+    if arena_max is not None:
+        settings.append(("MALLOC_ARENA_MAX", _M_ARENA_MAX, arena_max))
+    applied = False
+    for variable, parameter, value in settings:
+        if variable not in os.environ:
+            applied = bool(mallopt(ctypes.c_int(parameter), ctypes.c_int(value))) or applied
+    return applied
 
 
 def dask_worker_environment() -> dict[str, str]:
