@@ -298,3 +298,35 @@ def test_a_dead_worker_names_every_cell_of_the_blocks_that_were_running(tiny):
     running = {(str(c.index[0]), str(c.index[1])) for block in blocks[1:3] for c in block}
     assert running <= named and _named_cell(message) == blocks[1][0].index
     assert not {(str(c.index[0]), str(c.index[1])) for c in blocks[3]} & named
+
+
+@pytest.mark.skipif(not os.uname().sysname == "Linux", reason="forked workers on Linux")
+def test_a_local_cluster_forks_its_workers_and_gives_them_the_allocator_settings():
+    """Forked workers skip importing everything again; glibc took the environment's
+    allocator settings before the fork, so a worker plugin applies them (also to a worker
+    the nanny starts again)."""
+    pytest.importorskip("distributed")
+    from cellcoadd.execution import local_cluster
+
+    client, close = local_cluster(2)
+    try:
+        seen = client.run(_worker_start, os.getpid())
+    finally:
+        close()
+    assert len(seen) == 2
+    for method, plugins, imported, parent in seen.values():
+        assert method == "fork" and parent == os.getpid()
+        assert "cellcoadd-malloc-settings" in plugins and imported
+
+
+def _worker_start(parent: int, dask_worker=None) -> tuple:
+    import sys
+
+    import dask
+
+    return (
+        dask.config.get("distributed.worker.multiprocessing-method"),
+        list(dask_worker.plugins),
+        "cellcoadd.builder.patch" in sys.modules,  # inherited, not imported again
+        os.getppid(),
+    )
