@@ -123,6 +123,12 @@ class Cell:
         return self.inner_bbox.contains(x, y)
 
 
+def rubin_patch_id(patch: tuple[int, int], config: SkyMapConfig) -> int:
+    """Rubin's sequential id of patch ``(px, py)``: ``py * nx + px``, ``nx`` the patches
+    per tract row (:attr:`Patch.rubin_id`)."""
+    return int(patch[1]) * config.patches_per_tract + int(patch[0])
+
+
 def rubin_cell_index(
     index: tuple[int, int], patch: tuple[int, int], config: SkyMapConfig
 ) -> tuple[int, int]:
@@ -165,7 +171,7 @@ class Patch:
         """Rubin's sequential patch id, the data butler's ``patch``: ``y * nx + x`` with
         ``nx`` the patches per tract row (e.g. 34 for patch (4, 3) of ``lsst_cells_v1``).
         :meth:`Tract.patch_from_rubin_id` is the inverse."""
-        return self.index[1] * self.config.patches_per_tract + self.index[0]
+        return rubin_patch_id(self.index, self.config)
 
     def rubin_cell_index(self, index: tuple[int, int]) -> tuple[int, int]:
         """Rubin's index ``(x, y)`` in this patch of the cell of tract-global ``index`` (one

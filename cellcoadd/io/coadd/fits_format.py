@@ -48,6 +48,7 @@ from cellcoadd.errors import (
     DamagedDataError,
     InvalidCoaddError,
 )
+from cellcoadd.geometry.tract import rubin_cell_index, rubin_patch_id
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io._fits import direct as fits_direct
 from cellcoadd.io._fits.checksums import (
@@ -221,8 +222,9 @@ def _write_fits(
     # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask (format 1.2)
     unit_cards = meta.unit_cards()
     no_data = meta.mask_bits.value("NO_DATA")
+    rubin_id = rubin_patch_id(meta.patch, meta.skymap_config)
     wcs_records = WcsRecords()
-    index_table, records = _index_table(identities, planes, wcs_records)
+    index_table, records = _index_table(identities, planes, wcs_records, meta)
     arriving = _checked(cells, identities, records, wcs_records, present)
     # ignore_empty: header-only HDUs (an empty cell's planes) after the primary one
     with fitsio.FITS(cfitsio_path(path), "rw", clobber=True, ignore_empty=True) as fits:
@@ -234,6 +236,7 @@ def _write_fits(
                 {"name": "TRACT", "value": meta.tract, "comment": "tract number"},
                 {"name": "PATCH_X", "value": meta.patch[0], "comment": "patch index x"},
                 {"name": "PATCH_Y", "value": meta.patch[1], "comment": "patch index y"},
+                {"name": "PATCHID", "value": rubin_id, "comment": "Rubin's patch id y * nx + x"},
                 {"name": "NCELLS", "value": len(indices), "comment": "cells in this file"},
                 {"name": "NHDU", "value": n_hdu, "comment": "HDUs in this file"},
                 {"name": "SOFTVERS", "value": meta.software_version, "comment": "built by"},
@@ -341,18 +344,25 @@ def _read_at(stream: BinaryIO, offset: int, size: int) -> bytes:
 
 
 def _index_table(
-    identities: Sequence[CellIdentity], planes: list[str], wcs_records: WcsRecords | None = None
+    identities: Sequence[CellIdentity],
+    planes: list[str],
+    wcs_records: WcsRecords | None,
+    metadata: PatchMetadata,
 ) -> tuple[np.ndarray, list[str]]:
-    """The CELLINDEX table of the cells of ``identities`` and their identity records."""
+    """The CELLINDEX table of the cells of ``identities`` and their identity records
+    (with Rubin's patch-local index of each cell, informative: format 1.6)."""
     records = [cell_record_json(identity, wcs_records) for identity in identities]
     width = max([1, *(len(text) for text in records)])
     dtype = [("CELL_X", "<i8"), ("CELL_Y", "<i8")]
     dtype += [(hdu_column(plane), "<i4") for plane in cell_planes.cell_objects()]
-    dtype += [("CELL", f"S{width}")]
+    dtype += [("RUBIN_X", "<i4"), ("RUBIN_Y", "<i4"), ("CELL", f"S{width}")]
     table = np.zeros(len(records), dtype=dtype)
     for row, (identity, text) in enumerate(zip(identities, records, strict=True)):
         first = _FIRST_CELL_HDU + row * len(planes)
         table[row]["CELL_X"], table[row]["CELL_Y"] = identity.index
+        table[row]["RUBIN_X"], table[row]["RUBIN_Y"] = rubin_cell_index(
+            identity.index, metadata.patch, metadata.skymap_config
+        )
         for plane in cell_planes.cell_objects():
             number = first + planes.index(plane) if plane in planes else -1
             table[row][hdu_column(plane)] = number

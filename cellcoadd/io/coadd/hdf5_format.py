@@ -28,6 +28,7 @@ import h5py
 import numpy as np
 
 from cellcoadd.errors import CellCoaddFormatError, DamagedDataError, InvalidCoaddError
+from cellcoadd.geometry.tract import rubin_cell_index, rubin_patch_id
 from cellcoadd.io._files import parallel
 from cellcoadd.io._files.read_checks import check_path_readable, reading_errors
 from cellcoadd.io.coadd import format_version
@@ -121,10 +122,12 @@ def write_hdf5_cells(
             # the set of cells and planes, bound to the metadata by one digest (format 1.2)
             ("contents", contents.decode("ascii")),
             ("contents_sha256", sha256_hex(payload + contents)),
+            # Rubin's ids, informative (format 1.6): the patch's, and each cell's in its group
+            ("patch_id", rubin_patch_id(metadata.patch, metadata.skymap_config)),
         ]
         maker.attributes(h5.id, root)
         maker.dataset(h5.id, "metadata", np.frombuffer(payload, dtype=np.uint8))
-        writer = _CellWriter(maker, maker.group(h5.id, "cells"), metadata.unit_cards())
+        writer = _CellWriter(maker, maker.group(h5.id, "cells"), metadata.unit_cards(), metadata)
         count = 0
         for cell, made in prepared:
             if count >= len(indices) or cell.index != indices[count]:
@@ -283,9 +286,11 @@ class _CellWriter:
         maker: ObjectMaker,
         cells: h5py.h5g.GroupID,
         plane_attrs: dict[str, list[tuple[str, object, str]]],
+        metadata: PatchMetadata,
     ) -> None:
         self.maker = maker
         self.cells = cells
+        self.patch, self.skymap_config = metadata.patch, metadata.skymap_config
         # BUNIT (+ MAGZERO) of image/noise/variance, MP_<NAME> = bit of the mask, as in FITS
         self.plane_attrs = plane_attrs
 
@@ -320,7 +325,15 @@ def _write_cell(writer: _CellWriter, cell: CellCoadd, prepared: _Prepared) -> No
         chunk=prepared.chunks.get(cell_planes.INPUTS),
     )
     record = prepared.record
-    maker.attributes(group, [("cell", record.decode("ascii")), ("cell_sha256", sha256_hex(record))])
+    rubin = np.array(rubin_cell_index(cell.index, writer.patch, writer.skymap_config), "<i4")
+    maker.attributes(
+        group,
+        [
+            ("cell", record.decode("ascii")),
+            ("cell_sha256", sha256_hex(record)),
+            ("rubin_cell_index", rubin),
+        ],
+    )
 
 
 class Hdf5CoaddFile(CoaddFile):
