@@ -23,7 +23,6 @@ cell of a group whose common box holds pixels none of them could use.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -33,6 +32,7 @@ from cellcoadd.builder.cell_sums import (
     Contribution,
     cell_jacobian,
     coadd_psf_contribution,
+    corner_pixels,
     finish_cell,
     input_record,
 )
@@ -45,11 +45,15 @@ from cellcoadd.builder.kernels.mask_interpolation import DEFAULT_MAX_RADIUS
 from cellcoadd.builder.kernels.mask_warp import warp_mask_or
 from cellcoadd.builder.mapping import PixelMapping, footprint_box
 from cellcoadd.builder.psf import (
-    PHASE_CORE_STEP,
     PsfError,
+    core_stencil,
     draw_exposure_core,
     input_map,
+    local_map,
+    node_position,
     psf_moments,
+    render_cores,
+    stencil_weights,
     warn_truncated_psfs,
 )
 from cellcoadd.builder.select import Candidate, Rejection, select_exposure
@@ -61,6 +65,7 @@ from cellcoadd.model.cell_coadd import CellCoadd
 from cellcoadd.model.exposure import Exposure
 from cellcoadd.model.inputs import InputRecord, InputStatus
 from cellcoadd.model.maskbits import MaskBits
+from cellcoadd.model.psf_phase import prefiltered
 from cellcoadd.model.sources import DescribedSource, ExposureHeader, ExposureSource
 
 #: Pixels loaded around a cell's footprint from an exposure source: the interpolation
@@ -157,7 +162,10 @@ class CellBlock:
         self.grid_caches: list[dict] = [{} for _ in cells]  # cells mapping themselves
         # per cell, the used inputs' phase terms (psf_phase), in the order of their records
         self.phase_terms: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in cells]
-        self.cores: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _core
+        self.cores: dict[_NodeKey, np.ndarray | None] = {}  # see _cores
+        self.splines: dict[_NodeKey, np.ndarray] = {}
+        # a varying model's stencils: their nodes' cores and spline coefficients, stacked
+        self.stencils: dict[_NodeKey, tuple[np.ndarray, np.ndarray]] = {}
 
     def add(self, item: BuildInput, frame: ExposureFrame | None) -> None:
         """Consider one input for every cell: select, warp and add it where it is usable.
@@ -306,10 +314,18 @@ class CellBlock:
             contributions.append((box, *warped, used))
 
     def _input_psf(self, i: int, found: Candidate) -> _InputPsf:
-        """What an input gives cell ``i``'s PSF: its warped stamps
-        (:func:`coadd_psf_contribution`) and, with ``BuildConfig.psf_phase``, its phase
-        term (the oversampled PSF core at the cell centre and its ``psf_maps`` row,
-        :mod:`cellcoadd.model.psf_phase`).
+        """What an input gives cell ``i``'s PSF: its warped stamps and, with
+        ``BuildConfig.psf_phase``, its phase term (the oversampled PSF core at the cell
+        centre and its ``psf_maps`` row, :mod:`cellcoadd.model.psf_phase`).
+
+        The centre stamp is the exposure's PSF drawn at the centre and warped
+        (:func:`coadd_psf_contribution`). Each corner stamp (``psf_corners``) is the
+        centre's plus what changes between the two positions, rendered from the
+        exposure's oversampled cores (:meth:`_cores`) at each position's exposure phase,
+        local map and area ratio (:func:`~cellcoadd.builder.psf.render_cores`): the PSF
+        model's own change across the cell (the cores interpolated there) and the
+        resampling's (the phase), within the cores' +-8 exposure pixels, where they
+        change the moments; the wings beyond are the centre's.
 
         Raises
         ------
@@ -317,13 +333,20 @@ class CellBlock:
             When one of them cannot be drawn (the input is rejected for the whole cell).
         """
         cell, config = self.cells[i], self.config
-        stamps = coadd_psf_contribution(cell, found, config.stamp_size, config.psf_corners)
-        if not config.psf_phase:
+        stamps = coadd_psf_contribution(cell, found, config.stamp_size)
+        if not (config.psf_phase or config.psf_corners):
             return stamps, None
         mapping = found.mapping
         ny, nx = cell.outer_bbox.shape
-        centre = (float(mapping.x[ny // 2, nx // 2]), float(mapping.y[ny // 2, nx // 2]))
-        core = self._core(found.exposure, *centre)
+        pixels = [(nx // 2, ny // 2)] + (corner_pixels(cell) if config.psf_corners else [])
+        points = [(float(mapping.x[cy, cx]), float(mapping.y[cy, cx])) for cx, cy in pixels]
+        core, coefficients = self._cores(found.exposure, points, config.psf_corners)
+        if config.psf_corners:
+            maps = [local_map(mapping.x, mapping.y, mapping.area_ratio, *p) for p in pixels]
+            renders = render_cores(coefficients, maps, config.stamp_size)
+            stamps = np.concatenate([stamps, stamps[0] + (renders[1:] - renders[0])])
+        if not config.psf_phase:
+            return stamps, None
         inner = cell.inner_bbox.slices_in(cell.outer_bbox)
         row = input_map(mapping.x, mapping.y, mapping.area_ratio, inner, found.weight)
         return stamps, (core, row)
@@ -351,30 +374,69 @@ class CellBlock:
         mask = translated_mask(exposure, footprint, self.settings.mask_bits)
         return warped_contribution(candidate, pixels, mask, self.config.n_noise)
 
-    def _core(self, exposure: Exposure, x: float, y: float) -> np.ndarray:
-        """The exposure's oversampled PSF core for a cell centred at exposure pixel
-        ``(x, y)``: drawn once per exposure and square of :data:`PHASE_CORE_STEP` detector
-        pixels, at its centre, and kept for the block's other cells there.
+    def _cores(
+        self, exposure: Exposure, points: Sequence[tuple[float, float]], corners: bool
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The exposure's oversampled PSF core at the first of ``points`` (exposure pixels:
+        the cell centre; float32, as stored in ``psf_phase``) and, with ``corners``, the
+        cubic B-spline coefficients of the cores at every point (for
+        :func:`~cellcoadd.builder.psf.render_cores`; else ``[]``).
 
-        The core only carries how resampling changes with the phase (the stamps carry
-        the model's value where they are), so the model's change over half a square,
-        ~1e-2 in size at most, changes the PSF served by ~1e-4 of the phase term's
-        ~1e-2. The square depends on the position alone, so a cell gets the same core in
-        any block; where the model fails at the square's centre, the cell's own is drawn.
+        The cores are drawn once per exposure at the nodes of a grid
+        (:func:`~cellcoadd.builder.psf.core_stencil`) and kept for the block's other
+        cells. For the corners, a varying model's are interpolated at the points with the
+        stencil's Lagrange weights (drawing and the spline's prefilter are linear, so the
+        coefficients are interpolated as the cores are); without them (the phase terms
+        alone only carry how resampling changes with the phase) the node of the cell's
+        square serves. A node depends on the exposure and its position alone, so a cell
+        gets the same cores in any block. Where the model fails at a node of the
+        stencil, the cell's own cores are drawn at the points.
         """
-        ox, oy = exposure.origin
-        bx = math.floor((x + ox) / PHASE_CORE_STEP)
-        by = math.floor((y + oy) / PHASE_CORE_STEP)
-        key = (exposure.visit, exposure.detector, bx, by)
-        core = self.cores.get(key)
-        if core is None:
-            node = ((bx + 0.5) * PHASE_CORE_STEP - ox, (by + 0.5) * PHASE_CORE_STEP - oy)
+        stencil = core_stencil(exposure, *points[0], interpolate=corners)
+        step, first, side = stencil
+        keys = [
+            (exposure.visit, exposure.detector, step, first[0] + a, first[1] + b)
+            for b in range(side)
+            for a in range(side)
+        ]
+        nodes = [self._node(exposure, key) for key in keys]
+        if any(node is None for node in nodes):
+            drawn = [
+                draw_exposure_core(exposure, x, y)
+                for x, y in points[: len(points) if corners else 1]
+            ]
+            return drawn[0], [prefiltered(core) for core in drawn] if corners else []
+        found = [node for node in nodes if node is not None]
+        if len(found) == 1:
+            return found[0], [self._spline(keys[0])] * len(points) if corners else []
+        stacked = self.stencils.get(keys[0])
+        if stacked is None:  # the stencil's nodes, kept for the block's other cells
+            splines = np.stack([self._spline(key) for key in keys])
+            stacked = self.stencils[keys[0]] = (np.stack(found).astype(np.float64), splines)
+        weights = stencil_weights(exposure, stencil, points)
+        # einsum's own loops, not BLAS: the same sums in the same order on any machine
+        core = np.einsum("k,kij->ij", weights[0], stacked[0])
+        coefficients = np.einsum("pk,kij->pij", weights, stacked[1])
+        return core.astype(np.float32), list(coefficients)
+
+    def _node(self, exposure: Exposure, key: _NodeKey) -> np.ndarray | None:
+        """The exposure's core at node ``key[3:]`` of spacing ``key[2]``, drawn once per block
+        (None where the model fails there)."""
+        if key not in self.cores:
             try:
-                core = draw_exposure_core(exposure, *node)
+                self.cores[key] = draw_exposure_core(exposure, *node_position(exposure, *key[2:]))
             except PsfError:
-                return draw_exposure_core(exposure, x, y)
-            self.cores[key] = core
-        return core
+                self.cores[key] = None
+        return self.cores[key]
+
+    def _spline(self, key: _NodeKey) -> np.ndarray:
+        """The cubic B-spline coefficients of a drawn node's core, computed once."""
+        spline = self.splines.get(key)
+        if spline is None:
+            core = self.cores[key]
+            assert core is not None  # only drawn nodes are asked for
+            spline = self.splines[key] = prefiltered(core)
+        return spline
 
     def _accept(self, i: int, exposure: Exposure, found: Candidate, psf: _InputPsf) -> None:
         """Record ``exposure`` as used by cell ``i``, with its PSF stamps (centre first; its
@@ -419,6 +481,12 @@ class CellBlock:
 #: What an input gives a cell's PSF: its warped stamps ``(n_psf, n, n)`` and its phase
 #: term (oversampled core, ``psf_maps`` row), None without ``psf_phase``.
 _InputPsf = tuple[np.ndarray, "tuple[np.ndarray, np.ndarray] | None"]
+
+
+#: A node of an exposure's grid of PSF cores: its visit, detector, the grid's spacing and
+#: the node ``(bx, by)`` (:class:`~cellcoadd.builder.psf.Stencil`).
+_NodeKey = tuple[int, int, int, int, int]
+
 
 #: A cell selected for an input: its index in the block, the selection, its PSF (None:
 #: not drawn yet).

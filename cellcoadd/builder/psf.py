@@ -10,6 +10,7 @@ from typing import NamedTuple
 import galsim
 import numpy as np
 
+from cellcoadd.builder.kernels.psf_render import render_cores as _render
 from cellcoadd.errors import PsfError, PsfStampWarning
 from cellcoadd.geometry.box import Box
 from cellcoadd.model.cell_coadd import CellCoadd
@@ -55,9 +56,29 @@ def draw_exposure_psf(exposure: Exposure, x: float, y: float, box: Box) -> np.nd
 
 
 #: Side, detector pixels, of the squares of an exposure that share one oversampled PSF
-#: core (:meth:`cellcoadd.builder.cell.CellBlock._core`): ~2 cells of 150 coadd pixels at
-#: 0.2"/px on 0.263"/px inputs.
+#: core for the phase terms (:meth:`cellcoadd.builder.cell.CellBlock._cores`): ~2 cells of
+#: 150 coadd pixels at 0.2"/px on 0.263"/px inputs; the core is drawn at its centre.
 PHASE_CORE_STEP = 256
+
+#: Spacing, detector pixels, of the nodes a varying PSF model's cores are interpolated from
+#: for the corner stamps: the quadratic through 3 x 3 nodes spans 1024 pixels, over which
+#: a PSF model varies smoothly (PSFEx: polynomials over the CCD), and a cell's 5 positions
+#: lie within 1/4 of a spacing of its stencil's centre node.
+CORE_STENCIL_STEP = 512
+
+#: Nodes per axis of the stencil a varying PSF model's core is interpolated from at a
+#: cell's PSF positions: 3, a quadratic in each axis.
+CORE_STENCIL = 3
+
+
+class Stencil(NamedTuple):
+    """Nodes of an exposure's grid of PSF cores: node ``(bx, by)`` lies at detector pixel
+    ``((bx + 1/2) step, (by + 1/2) step)``; the stencil holds the ``side`` x ``side``
+    nodes from ``first``."""
+
+    step: int
+    first: tuple[int, int]
+    side: int
 
 
 def draw_exposure_core(exposure: Exposure, x: float, y: float) -> np.ndarray:
@@ -77,6 +98,134 @@ def draw_exposure_core(exposure: Exposure, x: float, y: float) -> np.ndarray:
     if not np.all(np.isfinite(core)) or not core.sum() > 0:
         raise PsfError(f"PSF core drawn at ({x:.2f}, {y:.2f}) is non-finite or has no flux")
     return core.astype(np.float32)
+
+
+def core_stencil(exposure: Exposure, x: float, y: float, *, interpolate: bool = True) -> Stencil:
+    """The nodes a cell centred at exposure pixel ``(x, y)`` takes its cores from.
+
+    A constant model (:attr:`~cellcoadd.model.psf.PsfModel.constant`), or any without
+    ``interpolate`` (the phase terms alone), takes the node of the :data:`PHASE_CORE_STEP`
+    square holding ``(x, y)``; a varying one the :data:`CORE_STENCIL` x
+    :data:`CORE_STENCIL` nodes of spacing :data:`CORE_STENCIL_STEP` centred on the node
+    nearest ``(x, y)``. The stencil depends on the cell and the exposure only, so a cell
+    gets the same cores in any block or process.
+    """
+    ox, oy = exposure.origin
+    if exposure.psf_model.constant or not interpolate:
+        step = PHASE_CORE_STEP
+        first = (math.floor((x + ox) / step), math.floor((y + oy) / step))
+        return Stencil(step, first, 1)
+    step, half = CORE_STENCIL_STEP, CORE_STENCIL // 2
+    first = (math.floor((x + ox) / step) - half, math.floor((y + oy) / step) - half)
+    return Stencil(step, first, CORE_STENCIL)
+
+
+def node_position(exposure: Exposure, step: int, bx: int, by: int) -> tuple[float, float]:
+    """Exposure pixel of node ``(bx, by)`` of spacing ``step`` (:class:`Stencil`)."""
+    ox, oy = exposure.origin
+    return (bx + 0.5) * step - ox, (by + 0.5) * step - oy
+
+
+def stencil_weights(
+    exposure: Exposure, stencil: Stencil, points: Sequence[tuple[float, float]]
+) -> np.ndarray:
+    """Lagrange weights ``(len(points), side * side)`` of the stencil's nodes (row-major,
+    ``y`` outer) at exposure pixels ``points``: the tensor product of the polynomials of
+    degree ``side - 1`` through the nodes along each axis (all 1 for one node)."""
+    ox, oy = exposure.origin
+    step, (fx, fy), side = stencil
+    xy = np.asarray(points, dtype=np.float64)
+    u = (xy[:, 0] + ox) / step - 0.5 - fx
+    v = (xy[:, 1] + oy) / step - 0.5 - fy
+    nodes = np.arange(side, dtype=np.float64)
+    along_x, along_y = _lagrange(u, nodes), _lagrange(v, nodes)  # (points, side)
+    return (along_y[:, :, None] * along_x[:, None, :]).reshape(len(xy), side * side)
+
+
+def _lagrange(t: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Weights ``(len(t), len(nodes))`` of the interpolating polynomial through ``nodes``
+    at each of ``t``."""
+    weights = np.ones((len(t), len(nodes)))
+    for j, node in enumerate(nodes):
+        for m, other in enumerate(nodes):
+            if m != j:
+                weights[:, j] *= (t - other) / (node - other)
+    return weights
+
+
+def local_map(
+    x: np.ndarray, y: np.ndarray, area: np.ndarray, cx: int, cy: int, reach: int = 8
+) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """The mapping at outer-box pixel ``(cx, cy)``: its Jacobian ``[[dx_exp/dx,
+    dx_exp/dy], [dy_exp/dx, dy_exp/dy]]`` (central differences over ``reach`` pixels or
+    as far as the box allows, so the mapping's approximation error, <= 1e-3 px, enters
+    divided by the baseline), the area ratio there and the exposure phase ``(fx, fy)`` of
+    the pixel, in [0, 1)."""
+    ny, nx = x.shape
+    rx = max(1, min(reach, cx, nx - 1 - cx))
+    ry = max(1, min(reach, cy, ny - 1 - cy))
+    jacobian = np.array(
+        [
+            [
+                (x[cy, cx + rx] - x[cy, cx - rx]) / (2 * rx),
+                (x[cy + ry, cx] - x[cy - ry, cx]) / (2 * ry),
+            ],
+            [
+                (y[cy, cx + rx] - y[cy, cx - rx]) / (2 * rx),
+                (y[cy + ry, cx] - y[cy - ry, cx]) / (2 * ry),
+            ],
+        ]
+    )
+    px, py = float(x[cy, cx]), float(y[cy, cx])
+    return jacobian, float(area[cy, cx]), (px - math.floor(px), py - math.floor(py))
+
+
+def render_cores(
+    coefficients: Sequence[np.ndarray],
+    maps: Sequence[tuple[np.ndarray, float, tuple[float, float]]],
+    size: int,
+) -> np.ndarray:
+    """Unit-flux sources' images on coadd PSF stamps, each from an oversampled core.
+
+    The same arithmetic as :func:`cellcoadd.model.psf_phase.render_input` (the core
+    sampled at the source's exposure phase, normalised to unit sum, tapered to zero over
+    its last 2 exposure pixels, warped with the image's normalised Lanczos-3 weights and
+    scaled by the area ratio; equal to it to ~1e-15), with each position's own local map
+    and area ratio, computed only on the stamp pixels the core reaches
+    (:func:`~cellcoadd.builder.kernels.psf_render.render_cores`).
+
+    Parameters
+    ----------
+    coefficients : sequence of ndarray, shape (m, m)
+        Each core's cubic B-spline coefficients (:func:`~cellcoadd.model.psf_phase.prefiltered`).
+    maps : sequence of (ndarray, float, (float, float))
+        Each position's map (:func:`local_map`): the Jacobian (exposure pixels per coadd
+        pixel), the area ratio (coadd pixel area over exposure pixel area) and the
+        source's sub-pixel position in the exposure, pixels in [0, 1).
+    size : int
+        Side of the (odd) stamps, each centred on its source's coadd pixel.
+
+    Returns
+    -------
+    ndarray, shape (len(maps), size, size), float64
+    """
+    out = np.zeros((len(maps), size, size))
+    _render(
+        np.stack([np.asarray(c, dtype=np.float64) for c in coefficients]),
+        np.array([phase for _, _, phase in maps], dtype=np.float64),
+        np.stack([np.asarray(j, dtype=np.float64) for j, _, _ in maps]),
+        np.array([area for _, area, _ in maps], dtype=np.float64),
+        PHASE_HALF,
+        PHASE_OVERSAMPLING,
+        _TAPER,
+        out,
+    )
+    return out
+
+
+#: Exposure pixels over which a rendered core is tapered to zero (as
+#: :mod:`cellcoadd.model.psf_phase` does).
+_TAPER = 2.0
 
 
 def input_map(

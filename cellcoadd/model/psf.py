@@ -127,6 +127,9 @@ class PsfModel(ABC):
 
     #: whether the native form of the model already contains the pixel response
     includes_pixel: bool
+    #: whether the model is the same at every position (then the builder draws one
+    #: oversampled core per exposure region instead of interpolating between several)
+    constant: bool = False
 
     @abstractmethod
     def draw(
@@ -232,6 +235,7 @@ class GalSimPsf(PsfModel):
         if isinstance(profile, galsim.GSObject):
             check_psf_flux(profile.flux, "GalSimPsf")
         self.profile = profile
+        self.constant = isinstance(profile, galsim.GSObject)
 
     def at(self, x: float, y: float) -> galsim.GSObject:
         """The pre-pixel profile at exposure pixel ``(x, y)``."""
@@ -294,6 +298,7 @@ class ImagePsf(PsfModel):
     """
 
     includes_pixel = True
+    constant = True
 
     def __init__(self, image: galsim.Image | np.ndarray):
         array = np.asarray(image.array if isinstance(image, galsim.Image) else image)
