@@ -3,10 +3,16 @@ patch of ``bench_build_patch.py`` built serially without them, with each and wit
 interleaved.
 
 Run as ``.venv/bin/python benchmarks/psf_phase_cost.py [--inside] [--cells 6] [--ccd 400]
-[--visits 20] [--psf-size 35] [--rounds 4]`` (the defaults: the demo-sized patch of 64 cells
-and 180 exposures, ~1 CPU minute). Prints the CPU seconds of this process (the build is
-serial, so they are the build's, and are less disturbed by other load than wall-clock
-times), the wall-clock seconds and the load average (1 min) of each build, then the medians.
+[--visits 20] [--psf-size 35] [--rounds 4] [--psf-variation]`` (the defaults: the
+demo-sized patch of 64 cells and 180 exposures of 400-pixel CCDs, each with a constant
+PSF, ~1 CPU minute; ``--psf-variation``: PSFs varying over the focal plane, so the corner
+stamps interpolate the cores between 3 x 3 nodes per exposure region; ``--ccd 2000``: 20
+exposures of one 2000-pixel CCD, each serving every cell). Prints the CPU seconds of this
+process (the build is serial, so they are the build's, and are less disturbed by other
+load than wall-clock times), the wall-clock seconds and the load average (1 min) of each
+build, then the medians. With ``--inside``: per build, the CPU time of all of the inputs'
+PSF work for the cells less their centre stamps (which every build draws), against the
+rest of the same build.
 """
 
 from __future__ import annotations
@@ -37,12 +43,14 @@ from cellcoadd.sim import simulate_field  # noqa: E402
 
 
 def timed_inside(patch, exposures, psf_size: int, rounds: int) -> None:
-    """The CPU time of the phase terms' own calls (core draws, affine maps) and of the PSF
-    stamps (centre and corners) against the rest of the same serial build, which the
-    machine's load disturbs far less than comparing separate builds."""
-    spent = {"phase": 0.0, "stamps": 0.0}
-    originals = (cell_module.CellBlock._core, cell_module.input_map,
-                 cell_module.coadd_psf_contribution)  # fmt: skip
+    """The CPU time of the PSF across the cell inside each serial build: all of an input's
+    PSF work for a cell (``CellBlock._input_psf``) less its centre stamp
+    (``coadd_psf_contribution``, which every build draws) is what the corners and the
+    phase terms cost (core draws at the nodes, renders, affine maps); it is compared with
+    the rest of the same build, which the machine's load disturbs far less than
+    comparing separate builds."""
+    spent = {"psf": 0.0, "centre": 0.0}
+    originals = (cell_module.CellBlock._input_psf, cell_module.coadd_psf_contribution)
 
     def timed(function, key):
         def call(*args):
@@ -54,26 +62,25 @@ def timed_inside(patch, exposures, psf_size: int, rounds: int) -> None:
 
         return call
 
-    cell_module.CellBlock._core = timed(originals[0], "phase")  # type: ignore[method-assign]
-    cell_module.input_map = timed(originals[1], "phase")
-    cell_module.coadd_psf_contribution = timed(originals[2], "stamps")
+    cell_module.CellBlock._input_psf = timed(originals[0], "psf")  # type: ignore[method-assign]
+    cell_module.coadd_psf_contribution = timed(originals[1], "centre")
     try:
-        for corners in (False, True):
-            config = BuildConfig(n_noise=3, psf_size=psf_size, psf_phase=True, psf_corners=corners)
+        for corners, phase in ((False, False), (False, True), (True, False), (True, True)):
+            config = BuildConfig(n_noise=3, psf_size=psf_size, psf_phase=phase, psf_corners=corners)
             for _ in range(rounds):
-                spent.update(phase=0.0, stamps=0.0)
+                spent.update(psf=0.0, centre=0.0)
                 start = time.process_time()
                 build_patch(patch, exposures, config, seed=1, progress=False, workers=1)
                 total = time.process_time() - start
-                rest = total - spent["phase"]
+                extra = spent["psf"] - spent["centre"]
+                rest = total - extra
                 print(
-                    f"  corners {corners!s:5}  build {total:5.2f} s  phase terms "
-                    f"{spent['phase']:.3f} s ({100 * spent['phase'] / rest:.1f}% of the rest)"
-                    f"  PSF stamps {spent['stamps']:.2f} s"
+                    f"  corners {corners!s:5} phase {phase!s:5}  build {total:5.2f} s  "
+                    f"centre stamps {spent['centre']:.2f} s  corners + phase terms "
+                    f"{extra:.3f} s ({100 * extra / rest:.1f}% of the rest)"
                 )
     finally:
-        (cell_module.CellBlock._core, cell_module.input_map,
-         cell_module.coadd_psf_contribution) = originals  # type: ignore[method-assign]  # fmt: skip
+        cell_module.CellBlock._input_psf, cell_module.coadd_psf_contribution = originals  # type: ignore[method-assign]
 
 
 def main() -> None:
@@ -86,14 +93,21 @@ def main() -> None:
     parser.add_argument(
         "--inside", action="store_true", help="time the phase terms inside each build instead"
     )
+    parser.add_argument(
+        "--psf-variation",
+        action="store_true",
+        help="PSFs varying over the focal plane (as `cellcoadd simulate --psf-variation`)",
+    )
     args = parser.parse_args()
     warnings.simplefilter("ignore", PsfStampWarning)
 
     skymap = benchmark_skymap(args.cells)
     patch = skymap[0].patch(*PATCH_INDEX)
-    simulation = simulate_field(
-        simulation_config(args.cells, args.ccd), skymap, 0, PATCH_INDEX, args.visits, seed=3
-    )
+    sim_config = simulation_config(args.cells, args.ccd)
+    if args.psf_variation:
+        field = sim_config.field.model_copy(update={"psf_fwhm_edge": 0.05, "psf_g_edge": 0.01})
+        sim_config = sim_config.model_copy(update={"field": field})
+    simulation = simulate_field(sim_config, skymap, 0, PATCH_INDEX, args.visits, seed=3)
     exposures = simulation.exposures
     variants = {"none": (False, False), "phase": (False, True), "corners": (True, False),
                 "both": (True, True)}  # fmt: skip

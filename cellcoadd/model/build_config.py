@@ -82,13 +82,18 @@ class BuildConfig(BaseModel):
         weight), so they carry no image of the sources even where the variance plane
         includes the sources' Poisson noise; or ``"pixel"``, each pixel's own variance.
     psf_corners : bool
-        Also draw the coadd PSF at the 4 corner pixels of each cell's inner box
+        Also store the coadd PSF at the 4 corner pixels of each cell's inner box
         (``CellCoadd.psf_corners``, format 1.4), with the same inputs and weights as the
         centre's, so that :meth:`CellCoadd.psf_at` interpolates the PSF across the cell.
-        Off by default: it adds ~4 PSF draws and warps per input and cell (measured in
-        ``docs/shear.md``); it needs ``psf_size // 2 <= cell_border`` (each corner stamp
-        lies in the outer box). Left out of the stored JSON when off, so configurations
-        and files from before it keep their bytes and hashes.
+        Each input's corner stamp is its centre stamp plus what changes between the
+        centre and the corner, rendered from the exposure's oversampled PSF cores (drawn
+        once per exposure at a grid of nodes, interpolated at the corner): it equals the
+        PSF drawn and warped at the corner to ~1e-4 in size and shape. Off by default:
+        ~9% of a build where each exposure's PSF is constant, 16-29% with varying models
+        (3 x 3 core draws per exposure region; measured in ``docs/shear.md``); it needs
+        ``psf_size // 2 <= cell_border`` (each corner stamp lies in the outer box). Left
+        out of the stored JSON when off, so configurations and files from before it keep
+        their bytes and hashes.
     psf_phase : bool
         Also store each used input's resampling phase term (``CellCoadd.psf_phase`` and
         ``psf_maps``, format 1.5: its effective PSF oversampled around the cell centre, its
@@ -96,10 +101,11 @@ class BuildConfig(BaseModel):
         :meth:`CellCoadd.psf_at` gives the PSF of a star at any pixel of the cell, with
         the phase at which each input meets it (without it the stamps hold the phases of
         their own pixels only). With ``psf_corners`` too it equals a star's coadded image
-        to ~1e-4 anywhere in the inner box, DECam PSFEx included. Off by default: 4-5% of
-        a build alone, ~40% with the corners, 17 kB per used input and cell (cost and
-        accuracy: ``docs/shear.md``). Left out of the stored JSON when off, like
-        ``psf_corners``.
+        to ~1e-4 anywhere in the inner box, DECam PSFEx included. Off by default: ~5% of
+        a build alone; with the corners ~10% where each exposure's PSF is constant and
+        20-29% with varying models, over the 10% a default may cost; 17 kB per used input
+        and cell (cost and accuracy: ``docs/shear.md``). Left out of the stored JSON when
+        off, like ``psf_corners``.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
