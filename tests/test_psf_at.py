@@ -463,3 +463,38 @@ def test_corner_stamps_of_a_varying_psf_do_not_depend_on_the_block():
         for cell, built in zip(cells, together, strict=True):
             assert built.n_used == 3 and built.psf_corners is not None
             assert built.equals(build_cells([cell], exposures, config, area=area)[0])
+
+
+def test_corner_stamps_of_a_varying_psf_do_not_depend_on_workers_or_parts():
+    """build_patch with a varying PSF model, corners and phase terms: 2 workers, and the
+    cells built in two parts, give the serial build's cells bit for bit."""
+    from cellcoadd.builder.patch import build_patch
+
+    grid = SkyMapConfig(cell_inner=60, cell_border=40, cells_per_patch=2, patches_per_tract=1)
+    tract = SkyMap.from_centers([(60.0, -30.0)], grid)[0]
+    patch = tract.patch(0, 0)
+    box = patch.inner_bbox
+    sky = tract.wcs.pixel_to_world_values(
+        box.x_start + box.nx / 2 - 0.5, box.y_start + box.ny / 2 - 0.5
+    )
+    exposures = []
+    for k in range(3):
+        wcs = _rotated_wcs(
+            (float(sky[0]), float(sky[1])), (350.0 + 0.3 * k, 350.0 - 0.2 * k), 0.4 * k
+        )
+        boresight = (350.0 - 800.0 * math.cos(k), 350.0 - 800.0 * math.sin(k))
+        psf = focal_plane_psf(galsim.Moffat(beta=3.5, fwhm=0.9), boresight, 1000.0, 0.05, 0.01)
+        exposures.append(Exposure(image=np.zeros((700, 700)), wcs=wcs, variance=1.0, psf=psf,
+                                  visit=k, detector=1, band="r", zero_point=30.0))  # fmt: skip
+    config = BuildConfig(n_noise=1, psf_size=51, psf_corners=True, psf_phase=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        serial = build_patch(patch, exposures, config, progress=False)
+        pooled = build_patch(patch, exposures, config, progress=False, workers=2)
+        indices = sorted(serial.cells)
+        part = build_patch(patch, exposures, config, progress=False, cells=indices[::2])
+    assert sum(cell.n_used == 3 for cell in serial.cells.values()) >= 4
+    for index, cell in serial.cells.items():
+        assert cell.equals(pooled[index]), index
+    for index in indices[::2]:
+        assert part[index].equals(serial[index]), index
