@@ -14,6 +14,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from astropy.io.fits.verify import VerifyError
+
 from cellcoadd.errors import CellCoaddError, CellCoaddFormatError
 from cellcoadd.io._files.path_gate import gate_read
 from cellcoadd.io._fits.cfitsio_messages import clear_cfitsio_messages
@@ -30,6 +32,7 @@ FILE_FAILURES: tuple[type[BaseException], ...] = (
     OverflowError,  # a stored number too large for its type
     struct.error,
     zlib.error,
+    VerifyError,  # a header card astropy cannot parse (e.g. an unquoted string value)
 )
 
 #: Raised by a library on data it cannot use (h5py maps some HDF5 failures, e.g. a bad

@@ -99,9 +99,18 @@ def _wcs(path: str, header: fits.Header, what: str) -> WCS:
                 raise CellCoaddFormatError(
                     path, f"{what}: {key} = {order} is outside 0..{MAX_SIP_ORDER}"
                 )
-    for key, value in header.items():
-        # astropy raises AttributeError on a boolean CTYPE1 (found by the header fuzz)
-        if key.startswith(("CTYPE", "CUNIT", "RADESYS")) and not isinstance(value, str):
+    for key in header:
+        # astropy raises AttributeError on a boolean CTYPE1 (found by the header fuzz); only
+        # these cards' values are parsed here (another's may not parse: the WCS says so)
+        if not key.startswith(("CTYPE", "CUNIT", "RADESYS")):
+            continue
+        try:
+            value = header[key]
+        except Exception as err:
+            if not is_file_failure(err):
+                raise
+            raise CellCoaddFormatError(path, f"{what}: {key} cannot be parsed ({err})") from None
+        if not isinstance(value, str):
             raise CellCoaddFormatError(path, f"{what}: {key} = {value!r} is not a string")
     try:
         with warnings.catch_warnings():
