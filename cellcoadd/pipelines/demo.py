@@ -31,7 +31,7 @@ from cellcoadd.model.build_config import BuildConfig
 from cellcoadd.model.patch_coadd import PatchCoadd
 from cellcoadd.pipelines.coverage import count_inputs, coverage_warning
 from cellcoadd.pipelines.simulation_files import write_field_simulation
-from cellcoadd.pipelines.warmup import kernels_cached, warm_up_kernels
+from cellcoadd.pipelines.warmup import COMPILE_TIME, kernels_cached, warm_up_kernels
 from cellcoadd.shear import (
     PAPER_CUTS,
     mean_shear,
@@ -242,7 +242,7 @@ def run_demo(
         warm_up_kernels(build_config)  # loads numba's disk cache: about a second
     else:
         say(
-            "compiling the builder's numba kernels: first run only, about 10-40 s; "
+            f"compiling the builder's numba kernels: first run only, {COMPILE_TIME}; "
             "they are cached on disk for later runs"
         )
         say(f"compiled in {warm_up_kernels(build_config):.0f} s")

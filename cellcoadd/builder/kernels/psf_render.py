@@ -26,7 +26,8 @@ _PAD = 6
 
 @numba.njit(cache=True, inline="always")
 def _bspline(s: float) -> tuple[float, float, float, float]:
-    """Cubic B-spline weights of the taps ``floor(t) - 1 .. floor(t) + 2``, ``s = t - floor(t)``."""
+    """Cubic B-spline weights of the taps ``floor(t) - 1`` to ``floor(t) + 2``, at
+    ``s = t - floor(t)``."""
     r = 1.0 - s
     s2 = s * s
     s3 = s2 * s
@@ -53,7 +54,7 @@ def _mirror(index: int, m: int) -> int:
 def _sample(
     coefficients: np.ndarray, fx: float, fy: float, half: int, oversampling: int, taper: float
 ) -> np.ndarray:
-    """The core at the exposure pixels ``-half .. half`` around a source at phase
+    """The core at the exposure pixels ``-half`` to ``half`` around a source at phase
     ``(fx, fy)``, unit sum, tapered, inside a zero border of :data:`_PAD` pixels."""
     m = coefficients.shape[0]
     centre = (m - 1) / 2.0
@@ -107,7 +108,7 @@ def render_cores(
 ) -> None:
     """``out[p]`` (zeroed, ``(P, n, n)``, odd ``n``) = ``areas[p]`` times the core of cubic
     B-spline ``coefficients[p]`` (``oversampling`` samples per exposure pixel, centred) for
-    a source at exposure phase ``phases[p]``, sampled over ``-half .. half`` exposure
+    a source at exposure phase ``phases[p]``, sampled over ``-half`` to ``half`` exposure
     pixels, normalised, tapered over ``taper`` pixels, resampled at the exposure offsets
     ``phases[p] + jacobians[p] @ (i - n // 2, j - n // 2)`` of stamp pixel ``(i, j)``."""
     size = out.shape[1]
