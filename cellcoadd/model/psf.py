@@ -578,9 +578,9 @@ class PiffPsf(_FileModel):
         self.chipnum = chipnum
         self.origin = origin
 
-    def draw(
-        self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
-    ) -> np.ndarray:
+    def _profile(self, x: float, y: float) -> tuple[galsim.GSObject, str, Any]:
+        """Piff's profile at exposure pixel ``(x, y)`` (unit flux checked), its drawing
+        method and the local Jacobian of the model's own WCS there."""
         model = self.model
         chipnum = self.chipnum if self.chipnum is not None else list(model.wcs)[0]
         xf, yf = x + self.origin, y + self.origin
@@ -592,23 +592,19 @@ class PiffPsf(_FileModel):
                 f"{self.source}: Piff model failed at ({x:.2f}, {y:.2f}): {err}"
             ) from err
         check_psf_flux(float(profile.flux), f"{self.source} at ({x:.2f}, {y:.2f})")
+        return profile, method, local
+
+    def draw(
+        self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
+    ) -> np.ndarray:
+        profile, method, local = self._profile(x, y)
         # Piff's profile is on the sky of its own WCS: drawn through that WCS's Jacobian
         image = _stamp(box, local)
         cx, cy = center if center is not None else (x, y)
         return _draw_profile(profile, image, x, y, (cx, cy), method)
 
     def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
-        model = self.model
-        chipnum = self.chipnum if self.chipnum is not None else list(model.wcs)[0]
-        xf, yf = x + self.origin, y + self.origin
-        try:
-            profile, method = model.get_profile(xf, yf, chipnum=chipnum)
-            local = model.wcs[chipnum].local(galsim.PositionD(xf, yf))
-        except (galsim.GalSimError, ValueError, KeyError) as err:
-            raise PsfError(
-                f"{self.source}: Piff model failed at ({x:.2f}, {y:.2f}): {err}"
-            ) from err
-        check_psf_flux(float(profile.flux), f"{self.source} at ({x:.2f}, {y:.2f})")
+        profile, method, local = self._profile(x, y)
         on_pixels = local.toImage(profile)
         if method == "no_pixel":
             return on_pixels
