@@ -471,27 +471,11 @@ class PsfexPsf(_FileModel):
         self.parsed = parsed
 
     def pixel_profile(self, x: float, y: float, jacobian: np.ndarray) -> galsim.GSObject:
-        array = self.parsed.stamp(x + 1.0, y + 1.0)
-        if not (np.all(np.isfinite(array)) and array.sum() > 0):
-            raise PsfError(
-                f"{self.source}: the PSFEx model at ({x:.2f}, {y:.2f}) does not have a "
-                "positive finite sum (polynomial evaluated far outside its fit?)"
-            )
-        try:
-            return galsim.InterpolatedImage(
-                galsim.Image(array),
-                scale=self.parsed.sample,
-                flux=1.0,
-                x_interpolant=galsim.Lanczos(3),
-            )
-        except (galsim.GalSimError, ValueError) as err:
-            raise PsfError(
-                f"{self.source}: PSFEx model failed at ({x:.2f}, {y:.2f}): {err}"
-            ) from err
+        return self._profile(x, y)[0]
 
-    def draw(
-        self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
-    ) -> np.ndarray:
+    def _profile(self, x: float, y: float) -> tuple[galsim.GSObject, int]:
+        """The model at exposure pixel ``(x, y)`` as a unit-flux profile in pixels, and the
+        side of its sample grid."""
         array = self.parsed.stamp(x + 1.0, y + 1.0)
         if not (np.all(np.isfinite(array)) and array.sum() > 0):
             raise PsfError(
@@ -509,6 +493,12 @@ class PsfexPsf(_FileModel):
             raise PsfError(
                 f"{self.source}: PSFEx model failed at ({x:.2f}, {y:.2f}): {err}"
             ) from err
+        return profile, max(array.shape)
+
+    def draw(
+        self, x: float, y: float, box: Box, jacobian: np.ndarray, center: Center = None
+    ) -> np.ndarray:
+        profile, side = self._profile(x, y)
         # the profile is in the detector's pixels: drawn on a unit pixel scale
         image = _stamp(box, galsim.PixelScale(1.0))
         stamp = _draw_profile(profile, image, x, y, center, "no_pixel")
@@ -516,7 +506,7 @@ class PsfexPsf(_FileModel):
         # by the sum over the model's whole support at that phase, a stamp lacks exactly
         # the model's own flux beyond it (psf_flux_outside; docs/shear.md)
         cx, cy = center if center is not None else (x, y)
-        reach = (max(array.shape) // 2 + 3) * self.parsed.sample + 1.5  # Lanczos-3 reach
+        reach = (side // 2 + 3) * self.parsed.sample + 1.5  # Lanczos-3 reach
         support = Box(
             x_start=math.floor(cx - reach),
             x_stop=math.ceil(cx + reach) + 1,
